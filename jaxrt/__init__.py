@@ -1,0 +1,20 @@
+"""jaxrt: a differentiable ray marcher in JAX.
+
+This module re-exports the public API; reading it is reading the API index.
+"""
+
+from . import bsdf as bsdf, io as io, sdf as sdf
+from .camera import OrthographicCamera as OrthographicCamera, PerspectiveCamera as PerspectiveCamera
+from .lights import DirectionalLight as DirectionalLight, PointLight as PointLight
+from .render import Image as Image, render as render
+from .scene import Scene as Scene
+from .settings import RenderSettings as RenderSettings
+from .trace import (
+    Hit as Hit,
+    intersect_plane as intersect_plane,
+    intersect_sphere as intersect_sphere,
+    sphere_trace as sphere_trace,
+    surface_normal as surface_normal,
+)
+
+__version__ = "0.1.0"

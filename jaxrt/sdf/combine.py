@@ -1,0 +1,163 @@
+"""Boolean combinations of shapes, sharp and smooth (notes, "Distance operations").
+
+The smooth versions use the quadratic polynomial smooth minimum of Inigo Quilez
+("smooth minimum", iquilezles.org): with h = max(k − |a − b|, 0) / k,
+
+    smin(a, b; k) = min(a, b) − h² k / 4,
+
+which equals min(a, b) where |a − b| ≥ k, blends over a band of width k, and keeps
+|∇f| ≤ 1, so the result is still a distance bound. k → 0 gives the sharp operator.
+The material of a combination is the material of the operand that is active (the
+smaller one for a union, the larger one for an intersection).
+"""
+
+import jax.numpy as jnp
+
+from ..vecmath import safe_div
+from .base import SDF, as_float
+
+
+def op_union(d1, d2):
+    """min(d1, d2): exact outside both shapes, a bound inside."""
+    return jnp.minimum(d1, d2)
+
+
+def op_subtraction(d1, d2):
+    """d1 with d2 removed: max(d1, −d2) (a bound)."""
+    return jnp.maximum(d1, -d2)
+
+
+def op_intersection(d1, d2):
+    """max(d1, d2) (a bound)."""
+    return jnp.maximum(d1, d2)
+
+
+def op_smooth_union(d1, d2, k):
+    """Polynomial smooth minimum with blend width `k` (a bound)."""
+    h = safe_div(jnp.maximum(k - jnp.abs(d1 - d2), 0.0), k)
+    return jnp.minimum(d1, d2) - h * h * k * 0.25
+
+
+def op_smooth_subtraction(d1, d2, k):
+    """d1 with d2 removed, blended over width `k`: −smin(−d1, d2)."""
+    return -op_smooth_union(-d1, d2, k)
+
+
+def op_smooth_intersection(d1, d2, k):
+    """Smooth maximum: −smin(−d1, −d2)."""
+    return -op_smooth_union(-d1, -d2, k)
+
+
+
+class Union(SDF):
+    """Union of any number of shapes: min over children (exact outside)."""
+
+    children_: tuple
+
+    def __init__(self, *children):
+        if not children:
+            raise ValueError("`Union(...)` needs at least one child")
+        self.children_ = tuple(children)
+
+    def children(self):
+        return self.children_
+
+    def eval(self, p):
+        d, m = self.children_[0].eval(p)
+        for child in self.children_[1:]:
+            dc, mc = child.eval(p)
+            m = jnp.where(dc < d, mc, m)
+            d = jnp.minimum(d, dc)
+        return d, m
+
+    def lipschitz(self):
+        return jnp.max(jnp.stack([c.lipschitz() for c in self.children_]))
+
+
+class Intersection(SDF):
+    """Intersection of any number of shapes: max over children (a bound)."""
+
+    children_: tuple
+
+    def __init__(self, *children):
+        if not children:
+            raise ValueError("`Intersection(...)` needs at least one child")
+        self.children_ = tuple(children)
+
+    def children(self):
+        return self.children_
+
+    def eval(self, p):
+        d, m = self.children_[0].eval(p)
+        for child in self.children_[1:]:
+            dc, mc = child.eval(p)
+            m = jnp.where(dc > d, mc, m)
+            d = jnp.maximum(d, dc)
+        return d, m
+
+    def lipschitz(self):
+        return jnp.max(jnp.stack([c.lipschitz() for c in self.children_]))
+
+
+class Subtraction(SDF):
+    """`a` with `b` removed: max(a, −b) (a bound). The cut takes `b`'s material."""
+
+    a: SDF
+    b: SDF
+
+    def children(self):
+        return (self.a, self.b)
+
+    def eval(self, p):
+        da, ma = self.a.eval(p)
+        db, mb = self.b.eval(p)
+        return op_subtraction(da, db), jnp.where(-db > da, mb, ma)
+
+    def lipschitz(self):
+        return jnp.maximum(self.a.lipschitz(), self.b.lipschitz())
+
+
+class _Smooth(SDF):
+    a: SDF
+    b: SDF
+    k: jnp.ndarray
+
+    def __init__(self, a, b, k=0.25):
+        self.a, self.b = a, b
+        self.k = as_float(k, (), f"{type(self).__name__}(k=...)")
+
+    def children(self):
+        return (self.a, self.b)
+
+    def lipschitz(self):
+        return jnp.maximum(self.a.lipschitz(), self.b.lipschitz())
+
+
+class SmoothUnion(_Smooth):
+    """Union blended over width `k` (polynomial smooth minimum; a bound).
+
+    Differentiable: `k` (and both children).
+    """
+
+    def eval(self, p):
+        da, ma = self.a.eval(p)
+        db, mb = self.b.eval(p)
+        return op_smooth_union(da, db, self.k), jnp.where(db < da, mb, ma)
+
+
+class SmoothSubtraction(_Smooth):
+    """`a` with `b` removed, blended over width `k` (a bound)."""
+
+    def eval(self, p):
+        da, ma = self.a.eval(p)
+        db, mb = self.b.eval(p)
+        return op_smooth_subtraction(da, db, self.k), jnp.where(-db > da, mb, ma)
+
+
+class SmoothIntersection(_Smooth):
+    """Intersection blended over width `k` (a bound)."""
+
+    def eval(self, p):
+        da, ma = self.a.eval(p)
+        db, mb = self.b.eval(p)
+        return op_smooth_intersection(da, db, self.k), jnp.where(db > da, mb, ma)

@@ -1,0 +1,152 @@
+"""Placement: domain maps that move the point before the child is evaluated.
+
+Notes, "Domain operations": a rigid motion M is applied to a shape by evaluating the
+child at M⁻¹ p (opTx); uniform scale evaluates s·f(p / s) (opScale); repetition
+evaluates the child at p folded into one period (opRep). Rigid motions and uniform
+scales keep exact distances exact.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..vecmath import cross, dot, normalize, safe_div
+from .base import SDF, as_float
+
+
+def rotate_axis_angle(p, axis, angle):
+    """Rodrigues' rotation of `p` by `angle` (radians) about unit `axis`."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return p * c + cross(axis, p) * s + axis * dot(axis, p) * (1.0 - c)
+
+
+def quaternion_to_axis_angle(q):
+    """(axis, angle in degrees) of the unit quaternion q = (w, x, y, z) (numpy)."""
+    q = np.asarray(q, dtype=float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) == 0.0:
+        raise ValueError(f"quaternion must be 4 finite numbers (w, x, y, z), not all 0; got {q}")
+    q = q / np.linalg.norm(q)
+    if q[0] < 0.0:
+        q = -q
+    v = q[1:]
+    s = np.linalg.norm(v)
+    if s == 0.0:
+        return np.array([0.0, 1.0, 0.0]), 0.0
+    return v / s, float(np.degrees(2.0 * np.arctan2(s, q[0])))
+
+
+class _Wrap(SDF):
+    def children(self):
+        return (self.child,)
+
+    def lipschitz(self):
+        return self.child.lipschitz()
+
+
+class Translate(_Wrap):
+    """The child moved by `offset`: f(p − offset). Differentiable: `offset`."""
+
+    child: SDF
+    offset: jnp.ndarray
+
+    def __init__(self, child, offset=(0.0, 0.0, 0.0)):
+        self.child = child
+        self.offset = as_float(offset, (3,), "Translate(offset=...)")
+
+    def eval(self, p):
+        return self.child.eval(p - self.offset)
+
+
+class Rotate(_Wrap):
+    """The child rotated by `angle` degrees about `axis` (right-handed): f(R⁻¹ p).
+
+    Give either `axis` and `angle`, or a unit `quaternion` (w, x, y, z), which is
+    converted to axis–angle. Differentiable: `axis` (normalised on use), `angle`.
+    """
+
+    child: SDF
+    axis: jnp.ndarray
+    angle: jnp.ndarray
+
+    def __init__(self, child, axis=(0.0, 1.0, 0.0), angle=0.0, quaternion=None):
+        self.child = child
+        if quaternion is not None:
+            axis, angle = quaternion_to_axis_angle(quaternion)
+        self.axis = as_float(axis, (3,), "Rotate(axis=...)")
+        self.angle = as_float(angle, (), "Rotate(angle=...)")
+
+    def eval(self, p):
+        axis = normalize(self.axis)
+        return self.child.eval(rotate_axis_angle(p, axis, -jnp.deg2rad(self.angle)))
+
+
+class Transform(_Wrap):
+    """The child moved by a rigid transform p ↦ R p + t: f(Rᵀ (p − t)).
+
+    `rotation` must be a 3×3 rotation matrix (checked when given as concrete numbers).
+    Differentiable: `rotation`, `translation`.
+    """
+
+    child: SDF
+    rotation: jnp.ndarray
+    translation: jnp.ndarray
+
+    def __init__(self, child, rotation=np.eye(3), translation=(0.0, 0.0, 0.0)):
+        self.child = child
+        self.rotation = as_float(rotation, (3, 3), "Transform(rotation=...)")
+        self.translation = as_float(translation, (3,), "Transform(translation=...)")
+        if not isinstance(self.rotation, jax.core.Tracer):
+            r = np.asarray(self.rotation)
+            if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
+                raise ValueError("`Transform(rotation=...)` must be a rotation matrix")
+
+    def eval(self, p):
+        return self.child.eval(self.rotation.T @ (p - self.translation))
+
+
+class Scale(_Wrap):
+    """The child scaled uniformly by `factor` > 0: s·f(p / s) (exact stays exact)."""
+
+    child: SDF
+    factor: jnp.ndarray
+
+    def __init__(self, child, factor=1.0):
+        self.child = child
+        self.factor = as_float(factor, (), "Scale(factor=...)")
+
+    def eval(self, p):
+        d, m = self.child.eval(safe_div(p, self.factor))
+        return d * self.factor, m
+
+
+class Repeat(_Wrap):
+    """The child repeated with `period` per axis (0 on an axis: no repetition there).
+
+    Infinite repetition folds p into the cell around the origin (opRep); with `count`
+    (static, per axis) only copies −count … +count exist (IQ's limited repetition).
+    A bound only if the child fits inside one cell (its distance then never looks past
+    the neighbouring copy). Differentiable: `period`.
+    """
+
+    child: SDF
+    period: jnp.ndarray
+    count: tuple | None = eqx.field(static=True)
+
+    def __init__(self, child, period=(1.0, 1.0, 1.0), count=None):
+        self.child = child
+        self.period = as_float(period, (3,), "Repeat(period=...)")
+        if count is not None:
+            count = tuple(int(c) for c in np.broadcast_to(np.asarray(count), (3,)))
+            if min(count) < 0:
+                raise ValueError(f"`Repeat(count=...)` must be ≥ 0 per axis, got {count}")
+        self.count = count
+
+    def eval(self, p):
+        active = self.period != 0.0
+        cell = jnp.round(safe_div(p, self.period))
+        if self.count is not None:
+            c = jnp.asarray(self.count, dtype=p.dtype)
+            cell = jnp.clip(cell, -c, c)
+        q = jnp.where(active, p - self.period * cell, p)
+        return self.child.eval(q)

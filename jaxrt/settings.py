@@ -1,0 +1,126 @@
+"""RenderSettings: every accuracy/speed dial of the renderer, with its default and meaning."""
+
+import dataclasses
+
+_NORMAL_MODES = ("autodiff", "central", "tetrahedron")
+_SHADOW_MODES = ("none", "hard", "soft")
+_DTYPES = ("float32", "float64")
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderSettings:
+    """Accuracy and speed dials. All are static: changing one recompiles, changing a
+    scene parameter value never does.
+
+    Marching
+      max_steps        step budget of a sphere-traced ray (primary and secondary).
+      hit_epsilon      absolute hit threshold in world units: a ray hits when the
+                       (Lipschitz-scaled) distance falls below it.
+      pixel_epsilon    hit threshold relative to the pixel footprint: the effective
+                       epsilon is hit_epsilon + pixel_epsilon · r(t), r(t) the radius of
+                       the pixel cone at distance t (0 switches it off).
+      max_distance     rays that travel this far miss.
+      over_relaxation  ω of Keinert et al. 2014 "Enhanced Sphere Tracing" (1 = plain
+                       sphere tracing; 1.2–1.8 take longer steps with a safe fall-back).
+      newton_steps     Newton polishing steps at a hit (they also carry the implicit-
+                       function gradient of the hit point; at least 1 when gradients
+                       are wanted).
+    Shading
+      normal_mode      "autodiff" (gradient of the SDF, default), "central"
+                       (6 evaluations) or "tetrahedron" (4 evaluations).
+      normal_epsilon   finite-difference step of the "central"/"tetrahedron" normals.
+      shadows          "hard" (a traced shadow ray), "soft" (penumbra estimate of
+                       Quilez, k·d/t along the shadow ray) or "none".
+      shadow_steps     step budget of a shadow ray.
+      penumbra         k of the soft shadow: larger is sharper.
+      shadow_max_distance  shadow rays towards directional lights stop here
+                       (None: max_distance); towards point lights at the light.
+      max_depth        Whitted recursion depth (reflected/refracted rays); only used
+                       when the scene has specular materials.
+      ray_offset       secondary rays start ray_offset · (ε + 1e-6·|p|) off the surface
+                       (multiples of the hit epsilon plus float32 precision of p).
+    Sampling
+      spp              samples per pixel, stratified (N-rooks) with a fixed seed,
+                       averaged with a box filter; 1 = pixel centres.
+      seed             seed of the pixel jitter.
+      wavelengths      wavelength samples in spectral mode (0 = RGB rendering; only
+                       scenes with a dispersive material use more than 0).
+    Numerics and execution
+      dtype            "float32" (default) or "float64" (needs jax_enable_x64).
+      batch_size       rays per tile: tiles are traced one after another and each
+                       stops as soon as its rays are done (None: whole image at once).
+      silhouette       silhouette-aware pixel coverage (gradients at outlines).
+    """
+
+    max_steps: int = 128
+    hit_epsilon: float = 1e-4
+    pixel_epsilon: float = 0.0
+    max_distance: float = 100.0
+    over_relaxation: float = 1.0
+    newton_steps: int = 1
+    normal_mode: str = "autodiff"
+    normal_epsilon: float = 1e-4
+    shadows: str = "hard"
+    shadow_steps: int = 64
+    penumbra: float = 8.0
+    shadow_max_distance: float | None = None
+    max_depth: int = 2
+    ray_offset: float = 4.0
+    spp: int = 1
+    seed: int = 0
+    wavelengths: int = 0
+    dtype: str = "float32"
+    batch_size: int | None = 4096
+    silhouette: bool = False
+
+    def __post_init__(self):
+        def need(ok, field, expected):
+            if not ok:
+                value = getattr(self, field)
+                raise ValueError(f"RenderSettings.{field} = {value!r}, expected {expected}")
+
+        need(_is_int(self.max_steps) and self.max_steps >= 1, "max_steps", "an integer ≥ 1")
+        need(_is_num(self.hit_epsilon) and self.hit_epsilon > 0, "hit_epsilon", "a number > 0")
+        need(_is_num(self.pixel_epsilon) and self.pixel_epsilon >= 0, "pixel_epsilon", "a number ≥ 0")
+        need(_is_num(self.max_distance) and self.max_distance > 0, "max_distance", "a number > 0")
+        need(
+            _is_num(self.over_relaxation) and 1 <= self.over_relaxation < 2,
+            "over_relaxation",
+            "a number in [1, 2)",
+        )
+        need(_is_int(self.newton_steps) and self.newton_steps >= 0, "newton_steps", "an integer ≥ 0")
+        need(self.normal_mode in _NORMAL_MODES, "normal_mode", f"one of {_NORMAL_MODES}")
+        need(_is_num(self.normal_epsilon) and self.normal_epsilon > 0, "normal_epsilon", "a number > 0")
+        need(self.shadows in _SHADOW_MODES, "shadows", f"one of {_SHADOW_MODES}")
+        need(_is_int(self.shadow_steps) and self.shadow_steps >= 1, "shadow_steps", "an integer ≥ 1")
+        need(_is_num(self.penumbra) and self.penumbra > 0, "penumbra", "a number > 0")
+        need(
+            self.shadow_max_distance is None
+            or (_is_num(self.shadow_max_distance) and self.shadow_max_distance > 0),
+            "shadow_max_distance",
+            "a number > 0 or None",
+        )
+        need(_is_int(self.max_depth) and 0 <= self.max_depth <= 16, "max_depth", "an integer in [0, 16]")
+        need(_is_num(self.ray_offset) and self.ray_offset > 0, "ray_offset", "a number > 0")
+        need(_is_int(self.spp) and self.spp >= 1, "spp", "an integer ≥ 1")
+        need(_is_int(self.seed), "seed", "an integer")
+        need(_is_int(self.wavelengths) and self.wavelengths >= 0, "wavelengths", "an integer ≥ 0")
+        need(self.dtype in _DTYPES, "dtype", f"one of {_DTYPES}")
+        need(
+            self.batch_size is None or (_is_int(self.batch_size) and self.batch_size >= 1),
+            "batch_size",
+            "an integer ≥ 1 or None",
+        )
+        need(isinstance(self.silhouette, bool), "silhouette", "true or false")
+
+    def replace(self, **changes):
+        """A copy with some dials changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+
+def _is_int(x):
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_num(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x
