@@ -48,12 +48,13 @@ def refract(wi, n, eta):
     inside = cos_i < 0.0
     eta = jnp.where(inside, safe_div(1.0, eta, 1.0), eta)
     n = jnp.where(inside, -n, n)
-    cos_i = jnp.abs(cos_i)
-    sin2_i = jnp.maximum(0.0, 1.0 - cos_i * cos_i)
-    sin2_t = safe_div(sin2_i, eta * eta, 1.0)
-    is_valid = sin2_t < 1.0
-    # safe_sqrt: finite gradient exactly at the critical angle (sin²θt = 1).
-    cos_t = safe_sqrt(1.0 - sin2_t)
+    cos_i = jnp.minimum(jnp.abs(cos_i), 1.0)
+    # cos²θt = 1 − sin²θi / eta² = (eta² − 1 + cos²θi) / eta², in the form that is exact
+    # for eta = 1 (no cancellation near grazing).
+    cos2_t = safe_div(eta * eta - 1.0 + cos_i * cos_i, eta * eta, -1.0)
+    is_valid = cos2_t > 0.0
+    # safe_sqrt: finite gradient exactly at the critical angle (cos θt = 0).
+    cos_t = safe_sqrt(cos2_t)
     inv_eta = safe_div(1.0, eta, 1.0)
     wt = -wi * inv_eta + (cos_i * inv_eta - cos_t) * n
     return jnp.where(is_valid, wt, reflect(wi, n)), is_valid
@@ -97,12 +98,12 @@ def fresnel_dielectric(cos_theta_i, eta):
     inside = cos_theta_i < 0.0
     eta = jnp.where(inside, safe_div(1.0, eta, 1.0), eta)
     cos_i = jnp.minimum(jnp.abs(cos_theta_i), 1.0)
-    sin2_i = jnp.maximum(0.0, 1.0 - cos_i * cos_i)
-    sin2_t = safe_div(sin2_i, eta * eta, 1.0)
-    tir = sin2_t >= 1.0
-    cos_t = safe_sqrt(1.0 - sin2_t)
-    # Both denominators vanish only at cos θi = cos θt = 0, i.e. grazing with eta = 1,
-    # where there is no interface and F = 0.
+    # cos²θt = (eta² − 1 + cos²θi) / eta²: exact for eta = 1.
+    cos2_t = safe_div(eta * eta - 1.0 + cos_i * cos_i, eta * eta, -1.0)
+    # At cos θt = 0 exactly the formula below gives 1 too, except at grazing with
+    # eta = 1, where both denominators vanish: there is no interface and F = 0.
+    tir = cos2_t < 0.0
+    cos_t = safe_sqrt(cos2_t)
     r_par = safe_div(eta * cos_i - cos_t, eta * cos_i + cos_t, 0.0)
     r_perp = safe_div(cos_i - eta * cos_t, cos_i + eta * cos_t, 0.0)
     f = 0.5 * (r_par * r_par + r_perp * r_perp)
