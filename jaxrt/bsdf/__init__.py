@@ -37,3 +37,7 @@ from .scattering import reflect as reflect
 from .scattering import refract as refract
 from .ward import Ward as Ward
 from .fresnel_blinn_phong import FresnelBlinnPhong as FresnelBlinnPhong
+from .specular import Conductor as Conductor
+from .specular import Dielectric as Dielectric
+from .specular import Mirror as Mirror
+from .specular import Whitted as Whitted
