@@ -4,6 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import silhouette
 from .camera import pixel_samples
 from .integrator import trace_radiance
 from .settings import RenderSettings
@@ -45,18 +46,39 @@ def _render(scene, camera, settings):
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
     origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
 
-    def kernel(ray):
+    def kernel(ray, scene=scene):
         o, d, cone = ray
-        return trace_radiance(scene, o, d, cone, settings)
+        out = trace_radiance(scene, o, d, cone, settings)
+        if settings.silhouette:
+            out = silhouette.blend(scene, o, d, cone, out, settings)
+        return out
 
     n = samples.shape[0]
-    if settings.batch_size is None or settings.batch_size >= n:
+    if settings.backend != "jax":
+        out = _fused(scene, camera, samples, settings, kernel)
+    elif settings.batch_size is None or settings.batch_size >= n:
         out = jax.vmap(kernel)((origins, directions, cones))
     else:
         out = jax.lax.map(kernel, (origins, directions, cones), batch_size=settings.batch_size)
     h, w, spp = camera.height, camera.width, settings.spp
     out = {k: v.reshape((h, w, spp) + v.shape[1:]).mean(axis=2) for k, v in out.items()}
     return Image(**out)
+
+
+def _fused(scene, camera, samples, settings, kernel):
+    """The per-sample kernel run lane-wise by `jaxrt.kernels` (backend "fused"/"pallas"/
+    "auto"); gradients through the vmapped path above."""
+    from .kernels.fused import map_samples
+
+    def one(params, px, py):
+        return kernel(params[1].generate_ray(px, py), params[0])
+
+    def reference(params, s):
+        rays = jax.vmap(params[1].generate_ray)(s[:, 0], s[:, 1])
+        return jax.lax.map(lambda r: kernel(r, params[0]), rays,
+                           batch_size=min(settings.batch_size or s.shape[0], s.shape[0]))
+
+    return map_samples(one, (scene, camera), samples, settings, reference)
 
 
 def _dtype(settings):
@@ -77,3 +99,12 @@ def _cast(tree, dtype):
         return x
 
     return jax.tree_util.tree_map(cast, tree)
+
+
+def compile_render(scene, camera, settings=None):
+    """Compile ahead of time; returns `f(scene, camera) -> Image` for scenes of this
+    structure (used to report compile and render time apart)."""
+    settings = RenderSettings() if settings is None else settings
+    dtype = _dtype(settings)
+    compiled = _render.lower(*_cast((scene, camera), dtype), settings).compile()
+    return lambda scene, camera: compiled(*_cast((scene, camera), dtype), settings)
