@@ -5,6 +5,7 @@ import dataclasses
 _NORMAL_MODES = ("autodiff", "central", "tetrahedron")
 _SHADOW_MODES = ("none", "hard", "soft")
 _DTYPES = ("float32", "float64")
+_BACKENDS = ("jax", "fused", "pallas", "auto")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +50,13 @@ class RenderSettings:
       dtype            "float32" (default) or "float64" (needs jax_enable_x64).
       batch_size       rays per tile: tiles are traced one after another and each
                        stops as soon as its rays are done (None: whole image at once).
+      backend          how the per-ray program is batched: "jax" (vmap over rays,
+                       default, the reference), "fused" (the program scalarised into
+                       one lane per ray, `jaxrt.kernels`: same image, fewer and fused
+                       ops; the fast path on CPUs), "pallas" (the same lanes inside one
+                       Pallas GPU kernel; interpret mode without a GPU) or "auto"
+                       (pallas on a GPU, fused elsewhere). Gradients always come from
+                       the "jax" program.
       silhouette       silhouette-aware pixel coverage (gradients at outlines).
     """
 
@@ -71,6 +79,7 @@ class RenderSettings:
     wavelengths: int = 0
     dtype: str = "float32"
     batch_size: int | None = 4096
+    backend: str = "jax"
     silhouette: bool = False
 
     def __post_init__(self):
@@ -112,6 +121,7 @@ class RenderSettings:
             "an integer ≥ 1 or None",
         )
         need(isinstance(self.silhouette, bool), "silhouette", "true or false")
+        need(self.backend in _BACKENDS, "backend", f"one of {_BACKENDS}")
 
     def replace(self, **changes):
         """A copy with some dials changed (validated)."""

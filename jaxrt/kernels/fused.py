@@ -1,0 +1,218 @@
+"""Fused rendering backends: the one-sample program run lane-wise over tiles of rays.
+
+`map_samples(fn, params, samples, settings, reference)` evaluates
+`fn(params, px, py) -> {name: array}` (the whole per-sample pipeline: camera ray, march,
+normal, shading, shadow rays) for every sample (px, py), with one of two backends:
+
+- "fused": `lanes.eval_lanes` in plain JAX, one tile of `settings.batch_size` rays
+  after another (`lax.map`). Each tile is a flat program of [B] elementwise operations
+  whose loops stop when the tile's last ray is done. The fast path on CPUs.
+- "pallas": the same lane program inside one Pallas (Triton) GPU kernel; each program
+  instance traces a block of rays, the scene's parameters are read from a small vector
+  (so changing them never recompiles). Without a GPU it runs in Pallas' interpret mode
+  (slow; for tests).
+
+Both compute the forward pass only. Gradients come from `reference` (the vmapped
+`jax` path) through a custom VJP: its backward pass differentiates the reference
+program, which gives the implicit-function-theorem gradients of the hit points.
+"""
+
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from .lanes import Unsupported, eval_lanes, lanes_of, stack_lanes
+
+__all__ = ["map_samples", "Unsupported", "pallas_block"]
+
+#: Pallas interpret mode: None = only without a GPU (tests); False forces the Triton
+#: lowering (to check it on a machine without a GPU: lower for platform "cuda").
+INTERPRET = None
+
+#: Rays per Pallas program instance when batch_size does not say otherwise: the probe
+#: in shared/bench/pallas_probe.py found blocks of 256 fastest on an H100.
+PALLAS_BLOCK = 256
+
+
+def map_samples(fn, params, samples, settings, reference):
+    """Evaluate `fn(params, px, py)` for every row of `samples` [N, 2].
+
+    Args:
+      fn: the one-sample program; returns a dict of arrays.
+      params: a pytree (scene, camera); its arrays are the program's parameters.
+      samples: [N, 2] pixel positions.
+      settings: `RenderSettings` (backend, batch_size, dtype).
+      reference: `reference(params, samples) -> dict of [N, ...]`, the vmapped path,
+        used for gradients.
+
+    Returns: a dict of [N, ...] arrays, the same as `reference` gives.
+    """
+    dyn, static = eqx.partition(params, eqx.is_array)
+    backend = resolve_backend(settings.backend)
+
+    def one(dyn_, px, py):
+        return fn(eqx.combine(dyn_, static), px, py)
+
+    @jax.custom_vjp
+    def run(dyn_, samples_):
+        if backend == "pallas":
+            return _pallas(one, dyn_, samples_, settings)
+        return _tiles(one, dyn_, samples_, settings)
+
+    def run_fwd(dyn_, samples_):
+        return run(dyn_, samples_), (dyn_, samples_)
+
+    def run_bwd(res, g):
+        dyn_, samples_ = res
+        _, vjp = jax.vjp(lambda d, s: reference(eqx.combine(d, static), s), dyn_, samples_)
+        return vjp(g)
+
+    run.defvjp(run_fwd, run_bwd)
+    return run(dyn, samples)
+
+
+def resolve_backend(backend):
+    """"auto" → "pallas" on a GPU, "fused" elsewhere; others unchanged."""
+    if backend == "auto":
+        return "pallas" if jax.default_backend() == "gpu" else "fused"
+    return backend
+
+
+def _trace_one(one, dyn, dtype):
+    """The jaxpr of the one-sample program and the pytree of its outputs."""
+    px = jax.ShapeDtypeStruct((), dtype)
+    shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
+    closed, out_shapes = jax.make_jaxpr(one, return_shape=True)(shapes, px, px)
+    return closed, out_shapes
+
+
+# ----------------------------------------------------------------- "fused": XLA tiles
+
+
+def _tiles(one, dyn, samples, settings):
+    dtype = samples.dtype
+    closed, out_shapes = _trace_one(one, dyn, dtype)
+    leaves = jax.tree_util.tree_leaves(dyn)
+    out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
+    n = samples.shape[0]
+    block = min(settings.batch_size or n, n)
+    tiles = -(-n // block)
+    pad = tiles * block - n
+    s = jnp.pad(samples, ((0, pad), (0, 0)), mode="edge").reshape(tiles, block, 2)
+
+    def tile(sb):
+        args = [lanes_of(leaf) for leaf in leaves]
+        args += [_lane(sb[:, 0]), _lane(sb[:, 1])]
+        outs = eval_lanes(closed, args, block, unroll=settings_unroll(settings))
+        return [stack_lanes(o, block, sh.dtype) for o, sh in zip(outs, out_leaves)]
+
+    if tiles == 1:
+        res = [r[None] for r in tile(s[0])]
+    else:
+        res = lax.map(tile, s)
+    res = [r.reshape((tiles * block,) + r.shape[2:])[:n] for r in res]
+    return jax.tree_util.tree_unflatten(out_tree, res)
+
+
+def _lane(x):
+    out = np.empty((), dtype=object)
+    out[()] = x
+    return out
+
+
+def settings_unroll(settings):
+    return getattr(settings, "unroll", 1) or 1
+
+
+# --------------------------------------------------------------- "pallas": one kernel
+
+
+def pallas_block(settings):
+    """Rays per program instance: a power of two ≤ batch_size, at most PALLAS_BLOCK."""
+    b = PALLAS_BLOCK if settings.batch_size is None else min(settings.batch_size, PALLAS_BLOCK)
+    return max(16, 1 << (int(b).bit_length() - 1))
+
+
+def _pow2(n, at_least=1):
+    return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
+
+
+def _pallas(one, dyn, samples, settings):
+    from jax.experimental import pallas as pl
+
+    dtype = samples.dtype
+    closed, out_shapes = _trace_one(one, dyn, dtype)
+    leaves, _ = jax.tree_util.tree_flatten(dyn)
+    out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
+
+    # parameters: one vector of the float dtype (ints and bools stored exactly as floats)
+    offsets, k = [], 0
+    for leaf in leaves:
+        offsets.append(k)
+        k += int(np.prod(leaf.shape))
+    nparams = _pow2(k, 16)
+    pvec = jnp.zeros((nparams,), dtype)
+    if leaves:
+        pvec = pvec.at[:k].set(jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves]))
+
+    # outputs: one row per output lane, rows padded to a power of two
+    sizes = [int(np.prod(o.shape)) for o in out_leaves]
+    rows = sum(sizes)
+    rows_pad = _pow2(rows, 2)
+
+    n = samples.shape[0]
+    block = pallas_block(settings)
+    grid = -(-n // block)
+    npad = grid * block
+    s = jnp.pad(samples, ((0, npad - n), (0, 0)), mode="edge").T  # [2, npad]
+
+    def any_lane(pred):
+        return jnp.max(jnp.where(pred, 1.0, 0.0)) > 0.5
+
+    def kernel(p_ref, s_ref, o_ref):
+        args = []
+        for leaf, off in zip(leaves, offsets):
+            obj = np.empty(leaf.shape, dtype=object)
+            for j, idx in enumerate(np.ndindex(leaf.shape)):
+                v = p_ref[off + j]
+                obj[idx] = v if leaf.dtype == dtype else v.astype(leaf.dtype)
+            args.append(obj)
+        args += [_lane(s_ref[0, :]), _lane(s_ref[1, :])]
+        outs = eval_lanes(closed, args, block, any_lane=any_lane, unroll=settings_unroll(settings))
+        r = 0
+        for o in outs:
+            for x in o.reshape(-1):
+                x = jnp.asarray(x)
+                if x.dtype != dtype:
+                    x = x.astype(dtype)
+                o_ref[r, :] = jnp.broadcast_to(x, (block,))
+                r += 1
+
+    interpret = (jax.default_backend() != "gpu") if INTERPRET is None else INTERPRET
+    kwargs = {}
+    if not interpret:
+        from jax.experimental.pallas import triton as pltriton
+
+        kwargs["compiler_params"] = pltriton.CompilerParams(
+            num_warps=getattr(settings, "num_warps", None) or 4, num_stages=1)
+    call = pl.pallas_call(
+        kernel,
+        out_shape=jax.ShapeDtypeStruct((rows_pad, npad), dtype),
+        grid=(grid,),
+        in_specs=[pl.BlockSpec((nparams,), lambda i: (0,)),
+                  pl.BlockSpec((2, block), lambda i: (0, i))],
+        out_specs=pl.BlockSpec((rows_pad, block), lambda i: (0, i)),
+        interpret=interpret,
+        **kwargs,
+    )
+    out = call(pvec, s)[:rows, :n].T  # [n, rows]
+    res, r = [], 0
+    for sh, size in zip(out_leaves, sizes):
+        res.append(out[:, r:r + size].reshape((n,) + sh.shape).astype(sh.dtype))
+        r += size
+    return jax.tree_util.tree_unflatten(out_tree, res)

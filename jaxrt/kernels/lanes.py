@@ -1,0 +1,802 @@
+"""Run a one-ray program on a block of rays, one lane per ray ("structure of arrays").
+
+jaxrt's kernels are written for one ray (`trace_radiance(scene, o, d, cone, settings)`)
+and `jax.vmap` batches them. vmap keeps the shapes of the one-ray program and adds a
+batch axis: a point becomes a [B, 3] array, a dot product a reduction over its last
+axis, a sphere-tracing loop a masked loop over the batch. On a CPU this leaves many
+small ops with strided access; inside a GPU kernel (Pallas/Triton) shapes like [B, 3]
+are not even allowed (block shapes must be powers of two).
+
+`eval_lanes` instead *scalarises* the one-ray program. It traces it once to a jaxpr and
+interprets that jaxpr with every value of shape S held as a numpy object array of shape
+S whose elements are lanes: a [B] array (one number per ray), a 0-d array (the same
+for every ray: scene parameters) or a numpy scalar (a compile-time constant). Every
+elementwise primitive is applied lane-wise; structural primitives (slice, reshape,
+broadcast, concatenate, transpose, gather/scatter with constant indices, small
+reductions and dot products) only rearrange or fold the object arrays, so they cost
+nothing at run time. What is left is a flat program of [B] elementwise operations, which
+XLA fuses into a few loops on the CPU and Triton compiles into one GPU kernel.
+
+Control flow: a `while` whose condition varies between rays becomes one loop over the
+block that runs while any lane is active; inactive lanes keep their state (the
+semantics of `vmap` of a while loop: each ray stops where it would alone, and the block
+stops when its last ray does). `cond` with a per-ray index evaluates every branch and
+selects lane-wise. Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table)
+becomes a chain of selects over the possible indices.
+
+The result is the same function as the one-ray program (same primitives, same order of
+floating-point operations), so images agree with the vmapped path to rounding. The
+forward pass only: differentiate through the reference path (see `fused.py`).
+"""
+
+import functools
+import itertools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.extend import core as jcore
+
+__all__ = ["eval_lanes", "lanes_of", "stack_lanes", "Unsupported"]
+
+
+class Unsupported(NotImplementedError):
+    """The one-ray program uses a primitive (or a form of one) that lanes cannot run."""
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _is_const(x):
+    return isinstance(x, np.generic)
+
+
+def _lane_shape(x):
+    return () if _is_const(x) else tuple(jnp.shape(x))
+
+
+def _obj(shape):
+    return np.empty(shape, dtype=object)
+
+
+def lanes_of(x):
+    """A concrete or traced array of shape S as an object array of 0-d lanes.
+
+    Concrete (numpy, or non-traced JAX) arrays become numpy scalars (constants); traced
+    arrays are indexed element by element (uniform lanes)."""
+    if isinstance(x, (np.ndarray, np.generic, int, float, bool)) or (
+        isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer)
+    ):
+        a = np.asarray(x)
+        if a.size > 65536:
+            raise Unsupported(f"a constant of shape {a.shape} (tables are not lane programs)")
+        out = _obj(a.shape)
+        for idx in np.ndindex(a.shape):
+            out[idx] = a[idx]
+        return out
+    shape = jnp.shape(x)
+    out = _obj(shape)
+    if shape == ():
+        out[()] = x
+    else:
+        flat = jnp.reshape(x, (-1,))
+        for k, idx in enumerate(np.ndindex(shape)):
+            out[idx] = flat[k]
+    return out
+
+
+def stack_lanes(obj, block, dtype):
+    """An object array of lanes (shape S) as one array [block, *S]."""
+    shape = obj.shape
+    elems = [_broadcast(e, block, dtype) for e in obj.reshape(-1)]
+    if not elems:
+        return jnp.zeros((block,) + shape, dtype)
+    return jnp.stack(elems, axis=-1).reshape((block,) + shape)
+
+
+def _broadcast(x, block, dtype):
+    """A lane as a [block] array of `dtype`."""
+    x = jnp.asarray(x, dtype)
+    return jnp.broadcast_to(x, (block,)) if x.shape != (block,) else x
+
+
+class _Ctx:
+    """Evaluation context: block size, the any-lane reduction and the loop unroll."""
+
+    def __init__(self, block, any_lane, unroll):
+        self.block = block
+        self.any_lane = any_lane
+        self.unroll = unroll
+
+
+def _any_lane_default(pred):
+    return jnp.any(pred)
+
+
+# -------------------------------------------------------------- elementwise primitives
+
+_ELEMENTWISE = {
+    "abs", "acos", "acosh", "add", "add_any", "and", "asin", "asinh", "atan", "atan2",
+    "atanh", "cbrt", "ceil", "clamp", "convert_element_type", "copy", "copy_p", "cos",
+    "cosh", "div", "eq", "erf", "erf_inv", "erfc", "exp", "exp2", "expm1", "floor", "ge",
+    "gt", "integer_pow", "is_finite", "le", "lgamma", "log", "log1p", "logistic", "lt",
+    "max", "min", "mul", "ne", "neg", "nextafter", "not", "or", "pow", "reduce_precision",
+    "rem", "rsqrt", "select_n", "shift_left", "shift_right_arithmetic",
+    "shift_right_logical", "sign", "sin", "sinh", "sqrt", "square", "stop_gradient",
+    "sub", "tan", "tanh", "xor", "optimization_barrier_elem",
+}
+_IDENTITY = {"stop_gradient", "copy", "copy_p"}
+
+
+def _bind_lanes(prim, lanes, params, out_dtype, ctx):
+    """Apply an elementwise primitive to one lane of each operand."""
+    if prim.name in _IDENTITY:
+        return lanes[0]
+    if all(_is_const(x) for x in lanes):
+        with jax.ensure_compile_time_eval():
+            out = prim.bind(*[jnp.asarray(x) for x in lanes], **params)
+        return np.asarray(out).astype(out_dtype)[()]
+    shapes = {_lane_shape(x) for x in lanes}
+    shape = max(shapes, key=len)
+    ops = []
+    for x in lanes:
+        if _is_const(x):
+            x = jnp.asarray(x, x.dtype)
+        if x.shape != shape:
+            x = jnp.broadcast_to(x, shape)
+        ops.append(x)
+    return prim.bind(*ops, **params)
+
+
+def _elementwise(eqn, ins, ctx):
+    out_aval = eqn.outvars[0].aval
+    arrays = np.broadcast_arrays(*ins) if len(ins) > 1 else ins
+    out = _obj(out_aval.shape)
+    for idx in np.ndindex(out_aval.shape):
+        out[idx] = _bind_lanes(eqn.primitive, [a[idx] for a in arrays], eqn.params,
+                               out_aval.dtype, ctx)
+    return [out]
+
+
+def _apply(name, *lanes, dtype, ctx, **params):
+    """Elementwise primitive `name` (from jax.lax) on lanes."""
+    prim = _PRIMS[name]
+    return _bind_lanes(prim, list(lanes), params, dtype, ctx)
+
+
+_PRIMS = {
+    "add": lax.add_p, "mul": lax.mul_p, "max": lax.max_p, "min": lax.min_p,
+    "and": lax.and_p, "or": lax.or_p, "select_n": lax.select_n_p, "eq": lax.eq_p,
+    "gt": lax.gt_p, "lt": lax.lt_p, "ne": lax.ne_p, "xor": lax.xor_p,
+    "convert_element_type": lax.convert_element_type_p, "clamp": lax.clamp_p,
+}
+
+
+def _select(pred, on_false, on_true, dtype, ctx):
+    return _apply("select_n", pred, on_false, on_true, dtype=dtype, ctx=ctx)
+
+
+def _convert(x, dtype, ctx):
+    if _is_const(x):
+        return np.asarray(x).astype(dtype)[()]
+    if x.dtype == dtype:
+        return x
+    return lax.convert_element_type(x, dtype)
+
+
+# --------------------------------------------------------------- structural primitives
+
+
+def _broadcast_in_dim(eqn, ins, ctx):
+    (x,) = ins[:1]
+    shape, dims = eqn.params["shape"], eqn.params["broadcast_dimensions"]
+    new = [1] * len(shape)
+    for i, d in enumerate(dims):
+        new[d] = x.shape[i]
+    return [np.broadcast_to(x.reshape(new), shape)]
+
+
+def _reshape(eqn, ins, ctx):
+    if eqn.params.get("dimensions"):
+        raise Unsupported("reshape with `dimensions`")
+    return [ins[0].reshape(eqn.params["new_sizes"])]
+
+
+def _squeeze(eqn, ins, ctx):
+    return [np.squeeze(ins[0], axis=tuple(eqn.params["dimensions"]))]
+
+
+def _expand_dims(eqn, ins, ctx):
+    return [np.expand_dims(ins[0], tuple(eqn.params["dimensions"]))]
+
+
+def _transpose(eqn, ins, ctx):
+    return [np.transpose(ins[0], eqn.params["permutation"])]
+
+
+def _rev(eqn, ins, ctx):
+    return [np.flip(ins[0], axis=tuple(eqn.params["dimensions"]))]
+
+
+def _slice(eqn, ins, ctx):
+    p = eqn.params
+    strides = p["strides"] or (1,) * len(p["start_indices"])
+    idx = tuple(slice(a, b, s) for a, b, s in zip(p["start_indices"], p["limit_indices"], strides))
+    return [ins[0][idx]]
+
+
+def _concatenate(eqn, ins, ctx):
+    return [np.concatenate(ins, axis=eqn.params["dimension"])]
+
+
+def _stack(eqn, ins, ctx):
+    return [np.stack(ins, axis=eqn.params["axis"])]
+
+
+def _unstack(eqn, ins, ctx):
+    axis = eqn.params["axis"]
+    return [np.take(ins[0], k, axis=axis) for k in range(ins[0].shape[axis])]
+
+
+def _split(eqn, ins, ctx):
+    sizes, axis = eqn.params["sizes"], eqn.params["axis"]
+    cuts = np.cumsum(sizes)[:-1]
+    return list(np.split(ins[0], cuts, axis=axis))
+
+
+def _pad(eqn, ins, ctx):
+    x, value = ins
+    value = value[()]
+    cfg = eqn.params["padding_config"]
+    out = _obj(eqn.outvars[0].aval.shape)
+    out[...] = value
+    # positions of the operand's elements in the output
+    for idx in np.ndindex(x.shape):
+        pos = []
+        for i, (lo, _, interior) in zip(idx, cfg):
+            pos.append(int(lo) + i * (int(interior) + 1))
+        if all(0 <= q < n for q, n in zip(pos, out.shape)):
+            out[tuple(pos)] = x[idx]
+    return [out]
+
+
+def _iota(eqn, ins, ctx):
+    p = eqn.params
+    shape, dim = tuple(p["shape"]), p["dimension"]
+    a = np.arange(shape[dim], dtype=p["dtype"]).reshape([-1 if i == dim else 1 for i in range(len(shape))])
+    return [lanes_of(np.broadcast_to(a, shape))]
+
+
+def _fold(values, name, dtype, ctx):
+    return functools.reduce(lambda a, b: _apply(name, a, b, dtype=dtype, ctx=ctx), values)
+
+
+def _reduce(name):
+    def rule(eqn, ins, ctx):
+        (x,) = ins
+        axes = tuple(eqn.params["axes"])
+        dtype = eqn.outvars[0].aval.dtype
+        keep = [a for a in range(x.ndim) if a not in axes]
+        moved = np.transpose(x, keep + list(axes))
+        out_shape = moved.shape[: len(keep)]
+        moved = moved.reshape(out_shape + (-1,))
+        out = _obj(out_shape)
+        for idx in np.ndindex(out_shape):
+            out[idx] = _fold(list(moved[idx]), name, dtype, ctx)
+        return [out]
+
+    return rule
+
+
+def _arg_reduce(better):
+    def rule(eqn, ins, ctx):
+        (x,) = ins
+        axes = tuple(eqn.params["axes"])
+        idx_dtype = eqn.params["index_dtype"]
+        val_dtype = eqn.invars[0].aval.dtype
+        keep = [a for a in range(x.ndim) if a not in axes]
+        moved = np.transpose(x, keep + list(axes))
+        out_shape = moved.shape[: len(keep)]
+        moved = moved.reshape(out_shape + (-1,))
+        out = _obj(out_shape)
+        for idx in np.ndindex(out_shape):
+            vals = list(moved[idx])
+            best, arg = vals[0], np.asarray(0, idx_dtype)[()]
+            for k, v in enumerate(vals[1:], 1):
+                take = _apply(better, v, best, dtype=np.dtype(bool), ctx=ctx)
+                best = _select(take, best, v, val_dtype, ctx)
+                arg = _select(take, arg, np.asarray(k, idx_dtype)[()], idx_dtype, ctx)
+            out[idx] = arg
+        return [out]
+
+    return rule
+
+
+def _dot_general(eqn, ins, ctx):
+    lhs, rhs = ins
+    (lc, rc), (lb, rb) = eqn.params["dimension_numbers"]
+    dtype = eqn.outvars[0].aval.dtype
+    lf = [a for a in range(lhs.ndim) if a not in lc and a not in lb]
+    rf = [a for a in range(rhs.ndim) if a not in rc and a not in rb]
+    L = np.transpose(lhs, list(lb) + lf + list(lc))
+    R = np.transpose(rhs, list(rb) + rf + list(rc))
+    nb, nlf, nrf = len(lb), len(lf), len(rf)
+    bshape = L.shape[:nb]
+    lfs, rfs = L.shape[nb:nb + nlf], R.shape[nb:nb + nrf]
+    out = _obj(bshape + lfs + rfs)
+    for b in np.ndindex(bshape):
+        for i in np.ndindex(lfs):
+            for j in np.ndindex(rfs):
+                a = L[b + i].reshape(-1)
+                c = R[b + j].reshape(-1)
+                terms = [_apply("mul", _convert(x, dtype, ctx), _convert(y, dtype, ctx),
+                                dtype=dtype, ctx=ctx) for x, y in zip(a, c)]
+                out[b + i + j] = _fold(terms, "add", dtype, ctx) if terms else np.asarray(0, dtype)[()]
+    return [out]
+
+
+# ------------------------------------------------------- indexing (gather, scatter, …)
+
+
+def _concrete_index_eval(fn, operand_shape, *index_arrays):
+    """Run an indexing primitive on element ids (concrete) to see where elements go."""
+    ids = np.arange(int(np.prod(operand_shape)), dtype=np.int32).reshape(operand_shape)
+    with jax.ensure_compile_time_eval():
+        return np.asarray(fn(jnp.asarray(ids), *[jnp.asarray(a) for a in index_arrays]))
+
+
+def _enumerate_indices(index_objs, ranges):
+    """All assignments of the varying lanes among `index_objs` (object arrays).
+
+    Returns (varying, combos): the list of (array k, position) of varying lanes and an
+    iterator over tuples of their candidate values; at most 4096 combinations."""
+    varying = [(k, idx) for k, a in enumerate(index_objs) for idx in np.ndindex(a.shape)
+               if not _is_const(a[idx])]
+    sizes = [ranges[k] for k, _ in varying]
+    if math.prod(sizes) > 4096:
+        raise Unsupported("indexing with too many per-ray indices")
+    return varying, itertools.product(*[range(n) for n in sizes])
+
+
+def _gather_like(eqn, ins, ctx, operand, index_objs, ranges, fn, fill=None):
+    """Generic rule: out[e] = operand[f(e)] for concrete indices; selects otherwise."""
+    out_aval = eqn.outvars[0].aval
+    dtype = out_aval.dtype
+    varying, combos = _enumerate_indices(index_objs, ranges)
+
+    def concrete(objs):
+        arrays = [np.asarray(a.tolist(), dtype=eqn.invars[1 + k].aval.dtype).reshape(a.shape)
+                  for k, a in enumerate(objs)]
+        return _concrete_index_eval(fn, operand.shape, *arrays)
+
+    def pick(ids):
+        out = _obj(ids.shape)
+        flat = operand.reshape(-1)
+        for idx in np.ndindex(ids.shape):
+            i = int(ids[idx])
+            out[idx] = flat[i] if i >= 0 else fill
+        return out
+
+    if not varying:
+        return [pick(concrete(index_objs))]
+    result = None
+    for values in combos:
+        objs = [a.copy() for a in index_objs]
+        for (k, idx), v in zip(varying, values):
+            objs[k][idx] = np.asarray(v, eqn.invars[1 + k].aval.dtype)[()]
+        candidate = pick(concrete(objs))
+        if result is None:
+            result = candidate
+            continue
+        match = None
+        for (k, idx), v in zip(varying, values):
+            lane = index_objs[k][idx]
+            lo, hi = 0, ranges[k] - 1
+            clamped = _apply("clamp", np.asarray(lo, lane.dtype)[()], lane,
+                             np.asarray(hi, lane.dtype)[()], dtype=lane.dtype, ctx=ctx)
+            eq = _apply("eq", clamped, np.asarray(v, lane.dtype)[()], dtype=np.dtype(bool), ctx=ctx)
+            match = eq if match is None else _apply("and", match, eq, dtype=np.dtype(bool), ctx=ctx)
+        for idx in np.ndindex(result.shape):
+            if candidate[idx] is not result[idx]:
+                result[idx] = _select(match, result[idx], candidate[idx], dtype, ctx)
+    return [result]
+
+
+def _dynamic_slice(eqn, ins, ctx):
+    operand, starts = ins[0], ins[1:]
+    sizes = eqn.params["slice_sizes"]
+    ranges = [operand.shape[d] - sizes[d] + 1 for d in range(operand.ndim)]
+
+    def fn(ids, *s):
+        return lax.dynamic_slice(ids, [x[()] for x in s], sizes)
+
+    return _gather_like(eqn, ins, ctx, operand, list(starts), ranges, fn)
+
+
+def _gather(eqn, ins, ctx):
+    operand, indices = ins
+    p = dict(eqn.params)
+    dnums = p["dimension_numbers"]
+    fill_value = p.get("fill_value")
+    dtype = eqn.outvars[0].aval.dtype
+    if indices.size and not all(_is_const(x) for x in indices.reshape(-1)):
+        # enumerate per-ray index lanes over the axis each indexes
+        vdim = indices.ndim - 1
+        ranges_flat = {}
+        for idx in np.ndindex(indices.shape):
+            comp = idx[vdim] if indices.ndim else 0
+            ranges_flat[idx] = operand.shape[dnums.start_index_map[comp]]
+        varying = [(0, idx) for idx in np.ndindex(indices.shape) if not _is_const(indices[idx])]
+        if len(varying) > 2:
+            raise Unsupported("gather with more than two per-ray indices")
+        rng = [ranges_flat[idx] for _, idx in varying]
+        return _gather_varying(eqn, operand, indices, varying, rng, p, dtype, ctx)
+    fill = _fill(fill_value, dtype)
+    prm = {k: v for k, v in p.items()}
+    prm["fill_value"] = -1
+
+    def fn(ids, ix):
+        return lax.gather_p.bind(ids, ix, **prm)
+
+    ids = _concrete_index_eval(fn, operand.shape,
+                               np.asarray(indices.tolist(), eqn.invars[1].aval.dtype).reshape(indices.shape))
+    out = _obj(ids.shape)
+    flat = operand.reshape(-1)
+    for idx in np.ndindex(ids.shape):
+        i = int(ids[idx])
+        out[idx] = flat[i] if i >= 0 else fill
+    return [out]
+
+
+def _gather_varying(eqn, operand, indices, varying, rng, p, dtype, ctx):
+    prm = dict(p)
+    prm["fill_value"] = -1
+    fill = _fill(p.get("fill_value"), dtype)
+    idx_dtype = eqn.invars[1].aval.dtype
+    result = None
+    flat = operand.reshape(-1)
+    for values in itertools.product(*[range(n) for n in rng]):
+        ix = indices.copy()
+        for (_, pos), v in zip(varying, values):
+            ix[pos] = np.asarray(v, idx_dtype)[()]
+        arr = np.asarray(ix.tolist(), idx_dtype).reshape(ix.shape)
+        ids = _concrete_index_eval(lambda a, b: lax.gather_p.bind(a, b, **prm), operand.shape, arr)
+        cand = _obj(ids.shape)
+        for idx in np.ndindex(ids.shape):
+            i = int(ids[idx])
+            cand[idx] = flat[i] if i >= 0 else fill
+        if result is None:
+            result = cand
+            continue
+        match = None
+        for (_, pos), v, n in zip(varying, values, rng):
+            lane = indices[pos]
+            clamped = _apply("clamp", np.asarray(0, lane.dtype)[()], lane,
+                             np.asarray(n - 1, lane.dtype)[()], dtype=lane.dtype, ctx=ctx)
+            eq = _apply("eq", clamped, np.asarray(v, lane.dtype)[()], dtype=np.dtype(bool), ctx=ctx)
+            match = eq if match is None else _apply("and", match, eq, dtype=np.dtype(bool), ctx=ctx)
+        for idx in np.ndindex(result.shape):
+            if cand[idx] is not result[idx]:
+                result[idx] = _select(match, result[idx], cand[idx], dtype, ctx)
+    return [result]
+
+
+def _fill(fill_value, dtype):
+    if fill_value is not None:
+        return np.asarray(fill_value, dtype)[()]
+    if np.issubdtype(dtype, np.floating):
+        return np.asarray(np.nan, dtype)[()]
+    if dtype == np.dtype(bool):
+        return np.asarray(True)[()]
+    return np.asarray(np.iinfo(dtype).min, dtype)[()]
+
+
+def _scatter(add):
+    def rule(eqn, ins, ctx):
+        operand, indices, updates = ins
+        if not all(_is_const(x) for x in indices.reshape(-1)):
+            raise Unsupported("scatter with per-ray indices")
+        p = {k: v for k, v in eqn.params.items() if k not in ("update_jaxpr", "update_consts")}
+        n = operand.size
+        ix = np.asarray(indices.tolist(), eqn.invars[1].aval.dtype).reshape(indices.shape)
+        dtype = eqn.outvars[0].aval.dtype
+        out = operand.copy()
+        flat_out = out.reshape(-1)
+        flat_upd = updates.reshape(-1)
+        # where does each update element land? scatter its id (+1, 0 = nothing)
+        with jax.ensure_compile_time_eval():
+            for j in range(updates.size):
+                onehot = np.zeros(updates.shape, np.int32)
+                onehot.reshape(-1)[j] = 1
+                land = np.asarray(lax.scatter_add(
+                    jnp.zeros(operand.shape, jnp.int32), jnp.asarray(ix), jnp.asarray(onehot),
+                    p["dimension_numbers"], indices_are_sorted=p["indices_are_sorted"],
+                    unique_indices=p["unique_indices"], mode=p["mode"])).reshape(-1)
+                for i in np.nonzero(land)[0]:
+                    for _ in range(int(land[i])):
+                        if add:
+                            flat_out[i] = _apply("add", flat_out[i], flat_upd[j], dtype=dtype, ctx=ctx)
+                        else:
+                            flat_out[i] = flat_upd[j]
+        return [out]
+
+    return rule
+
+
+def _dynamic_update_slice(eqn, ins, ctx):
+    operand, update, starts = ins[0], ins[1], ins[2:]
+    dtype = eqn.outvars[0].aval.dtype
+    ranges = [operand.shape[d] - update.shape[d] + 1 for d in range(operand.ndim)]
+    varying, combos = _enumerate_indices(list(starts), ranges)
+    result = operand.copy()
+
+    def place(base, start_vals):
+        out = base.copy()
+        for idx in np.ndindex(update.shape):
+            out[tuple(s + i for s, i in zip(start_vals, idx))] = update[idx]
+        return out
+
+    def clamp_start(k, s):
+        return min(max(int(s), 0), ranges[k] - 1)
+
+    if not varying:
+        return [place(result, [clamp_start(k, s[()]) for k, s in enumerate(starts)])]
+    for values in combos:
+        vals = [None if not _is_const(s[()]) else clamp_start(k, s[()]) for k, s in enumerate(starts)]
+        match = None
+        for (k, _), v in zip(varying, values):
+            vals[k] = v
+            lane = starts[k][()]
+            clamped = _apply("clamp", np.asarray(0, lane.dtype)[()], lane,
+                             np.asarray(ranges[k] - 1, lane.dtype)[()], dtype=lane.dtype, ctx=ctx)
+            eq = _apply("eq", clamped, np.asarray(v, lane.dtype)[()], dtype=np.dtype(bool), ctx=ctx)
+            match = eq if match is None else _apply("and", match, eq, dtype=np.dtype(bool), ctx=ctx)
+        cand = place(operand, vals)
+        for idx in np.ndindex(result.shape):
+            if cand[idx] is not operand[idx]:
+                result[idx] = _select(match, result[idx], cand[idx], dtype, ctx)
+    return [result]
+
+
+# ------------------------------------------------------------------------ control flow
+
+
+def _closed(eqn):
+    for key in ("jaxpr", "call_jaxpr", "fun_jaxpr"):
+        j = eqn.params.get(key)
+        if isinstance(j, jcore.ClosedJaxpr):
+            return j
+        if isinstance(j, jcore.Jaxpr):
+            return jcore.ClosedJaxpr(j, ())
+    raise Unsupported(f"{eqn.primitive.name}: no inner jaxpr found")
+
+
+def _call(eqn, ins, ctx):
+    return _eval_closed(_closed(eqn), ins, ctx)
+
+
+def _while(eqn, ins, ctx):
+    p = eqn.params
+    cn, bn = p["cond_nconsts"], p["body_nconsts"]
+    cond_j, body_j = p["cond_jaxpr"], p["body_jaxpr"]
+    cconsts, bconsts, init = ins[:cn], ins[cn:cn + bn], ins[cn + bn:]
+    avals = [v.aval for v in eqn.outvars]
+    block = ctx.block
+    # loop state: every lane of every carried value as a [block] array (bools as int32,
+    # which every backend carries through loops)
+    shapes = [a.shape for a in avals]
+    dtypes = [a.dtype for a in avals]
+    sizes = [int(np.prod(s)) for s in shapes]
+
+    def store_dtype(dt):
+        return np.dtype(np.int32) if dt == np.dtype(bool) else dt
+
+    def pack(objs):
+        flat = []
+        for obj, dt in zip(objs, dtypes):
+            for x in obj.reshape(-1):
+                flat.append(_broadcast(_convert(x, store_dtype(dt), ctx), block, store_dtype(dt)))
+        return flat
+
+    def unpack(flat):
+        objs, k = [], 0
+        for shape, dt, n in zip(shapes, dtypes, sizes):
+            obj = _obj(shape)
+            ravel = obj.reshape(-1)
+            for i in range(n):
+                x = flat[k + i]
+                ravel[i] = (x != 0) if dt == np.dtype(bool) else x
+            objs.append(obj)
+            k += n
+        return objs
+
+    def cond_lanes(objs):
+        # a batched while (vmap inside the one-ray program) has a predicate of shape S
+        # and a body that masks itself: it runs while any element is true
+        (c,) = _eval_closed(cond_j, list(cconsts) + objs, ctx)
+        return _fold(list(c.reshape(-1)), "or", np.dtype(bool), ctx)
+
+    def step(state):
+        flat, active = state
+        objs = unpack(flat)
+        new = _eval_closed(body_j, list(bconsts) + objs, ctx)
+        new_flat = pack(new)
+        flat = [jnp.where(active, n, o) for n, o in zip(new_flat, flat)]
+        still = cond_lanes(unpack(flat))
+        active = active & _broadcast(still, block, bool)
+        return flat, active
+
+    def body_fn(state):
+        for _ in range(ctx.unroll):
+            state = step(state)
+        return state
+
+    def cond_fn(state):
+        return ctx.any_lane(state[1])
+
+    flat0 = pack(init)
+    active0 = _broadcast(cond_lanes(unpack(flat0)), block, bool)
+    flat, _ = lax.while_loop(cond_fn, body_fn, (flat0, active0))
+    return unpack(flat)
+
+
+def _cond(eqn, ins, ctx):
+    index, ops = ins[0][()], ins[1:]
+    branches = eqn.params["branches"]
+    if _is_const(index):
+        return _eval_closed(branches[int(index)], ops, ctx)
+    outs = [_eval_closed(b, ops, ctx) for b in branches]
+    result = [o.copy() for o in outs[0]]
+    n = len(branches)
+    clamped = _apply("clamp", np.asarray(0, index.dtype)[()], index,
+                     np.asarray(n - 1, index.dtype)[()], dtype=index.dtype, ctx=ctx)
+    for k in range(1, n):
+        match = _apply("eq", clamped, np.asarray(k, index.dtype)[()], dtype=np.dtype(bool), ctx=ctx)
+        for r, o, var in zip(result, outs[k], eqn.outvars):
+            for idx in np.ndindex(r.shape):
+                if o[idx] is not r[idx]:
+                    r[idx] = _select(match, r[idx], o[idx], var.aval.dtype, ctx)
+    return result
+
+
+def _round(eqn, ins, ctx):
+    """lax.round from floor, which every backend has (Triton has no round):
+    half away from zero: sign(x)·floor(|x| + ½); half to even: floor(x + ½), minus 1
+    where x + ½ was an odd integer. |x| ≥ 2^(mantissa bits) is already an integer."""
+    (x,) = ins
+    dtype = eqn.outvars[0].aval.dtype
+    method = int(eqn.params["rounding_method"])
+    big = np.asarray(2.0 ** np.finfo(dtype).nmant, dtype)[()]
+    half, one, two = (np.asarray(v, dtype)[()] for v in (0.5, 1.0, 2.0))
+    out = _obj(x.shape)
+    for idx in np.ndindex(x.shape):
+        v = x[idx]
+        a = _apply("abs", v, dtype=dtype, ctx=ctx)
+        if method == 0:
+            r = _apply("floor", _apply("add", a, half, dtype=dtype, ctx=ctx), dtype=dtype, ctx=ctx)
+            r = _apply("mul", _apply("sign", v, dtype=dtype, ctx=ctx), r, dtype=dtype, ctx=ctx)
+        else:
+            s = _apply("add", v, half, dtype=dtype, ctx=ctx)
+            r = _apply("floor", s, dtype=dtype, ctx=ctx)
+            tie = _apply("eq", r, s, dtype=np.dtype(bool), ctx=ctx)
+            odd = _apply("ne", _apply("sub", r, _apply("mul", two, _apply(
+                "floor", _apply("mul", r, half, dtype=dtype, ctx=ctx), dtype=dtype, ctx=ctx),
+                dtype=dtype, ctx=ctx), dtype=dtype, ctx=ctx), np.asarray(0.0, dtype)[()],
+                dtype=np.dtype(bool), ctx=ctx)
+            fix = _apply("and", tie, odd, dtype=np.dtype(bool), ctx=ctx)
+            r = _select(fix, r, _apply("sub", r, one, dtype=dtype, ctx=ctx), dtype, ctx)
+        large = _apply("ge", a, big, dtype=np.dtype(bool), ctx=ctx)
+        out[idx] = _select(large, r, v, dtype, ctx)
+    return [out]
+
+
+def _optimization_barrier(eqn, ins, ctx):
+    return list(ins)
+
+
+_RULES = {
+    "broadcast_in_dim": _broadcast_in_dim,
+    "reshape": _reshape,
+    "squeeze": _squeeze,
+    "expand_dims": _expand_dims,
+    "transpose": _transpose,
+    "rev": _rev,
+    "slice": _slice,
+    "concatenate": _concatenate,
+    "stack": _stack,
+    "unstack": _unstack,
+    "split": _split,
+    "pad": _pad,
+    "iota": _iota,
+    "reduce_sum": _reduce("add"),
+    "reduce_max": _reduce("max"),
+    "reduce_min": _reduce("min"),
+    "reduce_prod": _reduce("mul"),
+    "reduce_and": _reduce("and"),
+    "reduce_or": _reduce("or"),
+    "reduce_xor": _reduce("xor"),
+    "argmax": _arg_reduce("gt"),
+    "argmin": _arg_reduce("lt"),
+    "dot_general": _dot_general,
+    "dynamic_slice": _dynamic_slice,
+    "dynamic_update_slice": _dynamic_update_slice,
+    "gather": _gather,
+    "scatter": _scatter(False),
+    "scatter-add": _scatter(True),
+    "scatter_add": _scatter(True),
+    "while": _while,
+    "cond": _cond,
+    "pjit": _call,
+    "jit": _call,
+    "closed_call": _call,
+    "core_call": _call,
+    "remat": _call,
+    "checkpoint": _call,
+    "custom_jvp_call": _call,
+    "custom_vjp_call": _call,
+    "custom_vjp_call_jaxpr": _call,
+    "optimization_barrier": _optimization_barrier,
+    "round": _round,
+}
+_PRIMS.update({"sub": lax.sub_p, "div": lax.div_p, "not": lax.not_p, "abs": lax.abs_p,
+               "floor": lax.floor_p, "sign": lax.sign_p, "ge": lax.ge_p})
+
+
+# ---------------------------------------------------------------------- the interpreter
+
+
+def _eval_closed(closed, args, ctx):
+    consts = [lanes_of(c) for c in closed.consts]
+    return _eval_jaxpr(closed.jaxpr, consts, args, ctx)
+
+
+def _eval_jaxpr(jaxpr, consts, args, ctx):
+    env = {}
+
+    def read(v):
+        if isinstance(v, jcore.Literal):
+            return lanes_of(np.asarray(v.val, dtype=v.aval.dtype))
+        return env[v]
+
+    for v, x in zip(jaxpr.constvars, consts):
+        env[v] = x
+    if len(args) != len(jaxpr.invars):
+        raise Unsupported(f"arity mismatch: {len(args)} arguments for {len(jaxpr.invars)} inputs")
+    for v, x in zip(jaxpr.invars, args):
+        env[v] = x
+    for eqn in jaxpr.eqns:
+        ins = [read(v) for v in eqn.invars]
+        name = eqn.primitive.name
+        if name in _ELEMENTWISE:
+            outs = _elementwise(eqn, ins, ctx)
+        elif name in _RULES:
+            outs = _RULES[name](eqn, ins, ctx)
+        else:
+            raise Unsupported(
+                f"lanes cannot run the primitive `{name}` of the one-ray program; "
+                "use RenderSettings(backend=\"jax\")"
+            )
+        for v, o in zip(eqn.outvars, outs):
+            if not isinstance(v, jcore.DropVar):
+                env[v] = o
+    return [read(v) for v in jaxpr.outvars]
+
+
+def eval_lanes(closed, args, block, any_lane=None, unroll=1):
+    """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
+
+    Args:
+      closed: the jaxpr of the one-ray function (`jax.make_jaxpr`).
+      args: one object array per input (see `lanes_of`): elements are [block] arrays
+        (per ray), 0-d arrays (shared by all rays) or numpy scalars (constants).
+      block: the number of rays (lanes).
+      any_lane: `pred[block] -> bool scalar`, the loop condition of a block (default
+        `jnp.any`; Triton kernels need a max of 0/1 floats).
+      unroll: march steps per test of the block's loop condition.
+
+    Returns: one object array of lanes per output of the program.
+    """
+    ctx = _Ctx(block, any_lane or _any_lane_default, unroll)
+    return _eval_closed(closed, list(args), ctx)
