@@ -11,6 +11,8 @@ Each ray also carries its pixel cone: footprint radius r(t) = r0 + spread · t, 
 the pixel-relative hit epsilon and for silhouette coverage.
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -45,8 +47,11 @@ class _Camera(eqx.Module):
         return self.width / self.height
 
     def with_resolution(self, width, height):
-        """The same camera with another image size."""
-        return eqx.tree_at(lambda c: (c.width, c.height), self, (int(width), int(height)))
+        """The same camera with another image size (validated like the constructor)."""
+        # width/height are static fields, which `eqx.tree_at` cannot replace: rebuild.
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        fields.update(width=width, height=height)
+        return type(self)(**fields)
 
 
 def _check_frame(name, eye, target, up, width, height):

@@ -11,8 +11,9 @@ and the incident radiance scale (irradiance on a surface facing the light):
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .sdf.base import as_float
+from .sdf.base import as_float, check, non_negative
 from .vecmath import dot, normalize, safe_div, safe_norm
 
 
@@ -27,7 +28,7 @@ class PointLight(eqx.Module):
 
     def __init__(self, position=(0.0, 5.0, 0.0), intensity=(10.0, 10.0, 10.0)):
         self.position = as_float(position, (3,), "PointLight(position=...)")
-        self.intensity = as_float(intensity, (3,), "PointLight(intensity=...)")
+        self.intensity = non_negative(intensity, (3,), "PointLight(intensity=...)")
 
     def illuminate(self, p):
         v = self.position - p
@@ -44,8 +45,10 @@ class DirectionalLight(eqx.Module):
     irradiance: jnp.ndarray
 
     def __init__(self, direction=(0.0, 1.0, 0.0), irradiance=(1.0, 1.0, 1.0)):
-        self.direction = as_float(direction, (3,), "DirectionalLight(direction=...)")
-        self.irradiance = as_float(irradiance, (3,), "DirectionalLight(irradiance=...)")
+        self.direction = check(as_float(direction, (3,), "DirectionalLight(direction=...)"),
+                               lambda d: np.linalg.norm(d) > 0.0,
+                               "DirectionalLight(direction=...)", "non-zero")
+        self.irradiance = non_negative(irradiance, (3,), "DirectionalLight(irradiance=...)")
 
     def illuminate(self, p):
         return normalize(self.direction), jnp.asarray(jnp.inf, p.dtype), self.irradiance
@@ -56,7 +59,9 @@ def shadow_ray(sdf, origin, wi, distance, settings):
 
     "hard": 0 if a sphere-traced ray hits anything before the light, else 1.
     "soft": Quilez's penumbra estimate min over the march of smoothstep(k · f(t) / t),
-    with k = settings.penumbra (0 once the ray touches a surface).
+    with k = settings.penumbra (0 once the ray touches a surface). A shadow ray that
+    starts inside a solid (the shaded point is seen from inside it) marches on |f|,
+    as `sphere_trace` does: it is blocked where it leaves the solid.
     "none": 1. The loop is bounded by `settings.shadow_steps` and not differentiated.
     """
     from .trace import sphere_trace, stop_gradient
@@ -79,6 +84,8 @@ def _soft_shadow(sdf, origin, wi, t_max, settings):
     k = jnp.asarray(settings.penumbra, dtype)
     eps = settings.hit_epsilon
     lipschitz = sdf.lipschitz().astype(dtype)
+    # Inside a solid the distance to its surface is −f.
+    sign = jnp.where(sdf(origin) < 0.0, -1.0, 1.0).astype(dtype)
     # Steps are clamped to [eps, max_step]: a floor so that grazing rays progress and a
     # ceiling so that thin occluders are sampled (both as in Quilez's soft shadows).
     max_step = jnp.asarray(2.0, dtype)
@@ -89,7 +96,7 @@ def _soft_shadow(sdf, origin, wi, t_max, settings):
 
     def body(s):
         t, vis, i = s
-        d = sdf(origin + t * wi) / lipschitz
+        d = sign * sdf(origin + t * wi) / lipschitz
         h = jnp.clip(safe_div(k * d, t, 1.0), 0.0, 1.0)
         vis = jnp.minimum(vis, h * h * (3.0 - 2.0 * h))
         vis = jnp.where(d < eps, 0.0, vis)

@@ -3,7 +3,9 @@
 import abc
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 class SDF(eqx.Module):
@@ -57,11 +59,52 @@ class Primitive(SDF):
 
 
 def as_float(x, shape=None, name="value"):
-    """A float array of the given shape (broadcasting a scalar), with a clear error."""
-    a = jnp.asarray(x, dtype=float)
+    """A float array of the given shape (broadcasting a scalar), with a clear error.
+
+    Concrete values must be finite; traced ones (inside jit, grad, vmap) pass unchecked.
+    """
+    try:
+        a = jnp.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a number or an array of numbers, got {x!r}") from None
     if shape is not None:
         if a.ndim == 0 and shape != ():
             a = jnp.broadcast_to(a, shape)
         if a.shape != shape:
             raise ValueError(f"`{name}` must have shape {shape}, got {a.shape}")
+    return check(a, np.isfinite, name, "finite")
+
+
+def check(a, ok, name, expected):
+    """`a`, after checking that `ok(a)` holds elementwise; else a `ValueError` that names
+    the argument: "`Sphere(radius=...)` must be > 0, got -1.0". Traced values pass."""
+    if isinstance(a, jax.core.Tracer):
+        return a
+    v = np.asarray(a)
+    if not np.all(ok(v)):
+        raise ValueError(f"`{name}` must be {expected}, got {v.tolist()}")
     return a
+
+
+def positive(x, shape, name):
+    """`as_float` of a value that must be > 0."""
+    return check(as_float(x, shape, name), lambda v: v > 0.0, name, "> 0")
+
+
+def non_negative(x, shape, name):
+    """`as_float` of a value that must be ≥ 0."""
+    return check(as_float(x, shape, name), lambda v: v >= 0.0, name, "≥ 0")
+
+
+def material_index(material, name):
+    """A material index: an integer ≥ 0."""
+    if isinstance(material, bool) or not isinstance(material, (int, np.integer)) or material < 0:
+        raise ValueError(f"`{name}` must be an integer ≥ 0 (an index into Scene.materials), got {material!r}")
+    return int(material)
+
+
+def check_sdf(child, name):
+    """`child`, after checking that it is a shape node."""
+    if not isinstance(child, SDF):
+        raise TypeError(f"`{name}` must be a jaxrt.sdf node, got {type(child).__name__}")
+    return child

@@ -14,7 +14,7 @@ smaller one for a union, the larger one for an intersection).
 import jax.numpy as jnp
 
 from ..vecmath import safe_div
-from .base import SDF, as_float
+from .base import SDF, check_sdf, non_negative
 
 
 def op_union(d1, d2):
@@ -57,7 +57,7 @@ class Union(SDF):
     def __init__(self, *children):
         if not children:
             raise ValueError("`Union(...)` needs at least one child")
-        self.children_ = tuple(children)
+        self.children_ = tuple(check_sdf(c, f"Union(children[{i}])") for i, c in enumerate(children))
 
     def children(self):
         return self.children_
@@ -82,7 +82,7 @@ class Intersection(SDF):
     def __init__(self, *children):
         if not children:
             raise ValueError("`Intersection(...)` needs at least one child")
-        self.children_ = tuple(children)
+        self.children_ = tuple(check_sdf(c, f"Intersection(children[{i}])") for i, c in enumerate(children))
 
     def children(self):
         return self.children_
@@ -105,6 +105,10 @@ class Subtraction(SDF):
     a: SDF
     b: SDF
 
+    def __init__(self, a, b):
+        self.a = check_sdf(a, "Subtraction(a=...)")
+        self.b = check_sdf(b, "Subtraction(b=...)")
+
     def children(self):
         return (self.a, self.b)
 
@@ -123,8 +127,9 @@ class _Smooth(SDF):
     k: jnp.ndarray
 
     def __init__(self, a, b, k=0.25):
-        self.a, self.b = a, b
-        self.k = as_float(k, (), f"{type(self).__name__}(k=...)")
+        name = type(self).__name__
+        self.a, self.b = check_sdf(a, f"{name}(a=...)"), check_sdf(b, f"{name}(b=...)")
+        self.k = non_negative(k, (), f"{name}(k=...)")
 
     def children(self):
         return (self.a, self.b)

@@ -9,21 +9,38 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ..vecmath import safe_sqrt
-from .base import SDF, as_float
+from .base import SDF, as_float, check_sdf, non_negative, positive
 
 
-def _warp_lipschitz(rate, radius):
-    """Largest singular value of [[1, k r], [0, 1]]: the Jacobian bound of a twist/bend.
+def _twist_lipschitz(rate, radius):
+    """Largest singular value of [[1, k r], [0, 1]]: the Jacobian bound of a twist.
 
-    A rotation by angle k·y of the (x, z) plane has Jacobian R + u e_yᵀ with |u| = k r
-    (r the distance from the axis), whose spectral norm is (kr + sqrt(k²r² + 4)) / 2.
+    A rotation by angle k·y of the (x, z) plane has Jacobian R·(I + u e_yᵀ) with
+    |u| = k r (r the distance from the y axis) and u ⊥ e_y, whose spectral norm is
+    (kr + sqrt(k²r² + 4)) / 2.
     """
     kr = jnp.abs(rate) * radius
     return 0.5 * (kr + safe_sqrt(kr * kr + 4.0))
 
 
+def _bend_lipschitz(rate, radius):
+    """1 + k r: the Jacobian bound of a cheap bend.
+
+    A rotation by angle k·x of the (x, y) plane has Jacobian R·(I + u e_xᵀ) with
+    u = k·(−y, x), |u| = k r. Unlike the twist's, u can be parallel to e_x (at x = 0,
+    y = −r), where the spectral norm reaches |I + u e_xᵀ| = 1 + kr; the triangle
+    inequality makes it the maximum.
+    """
+    return 1.0 + jnp.abs(rate) * radius
+
+
 class SineDisplacement(eqx.Module):
-    """sin(ω x) sin(ω y) sin(ω z): the notes' example displacement; Lipschitz ω√3."""
+    """sin(ω x) sin(ω y) sin(ω z): the notes' example displacement; Lipschitz |ω|.
+
+    |∇g|² = ω² (ab + bc + ca − 3abc) with a, b, c the squared sines, which is affine in
+    each of a, b, c ∈ [0, 1], so its maximum is at a corner: 1 (e.g. at x = 0,
+    y = z = π/2ω). The bound is attained.
+    """
 
     frequency: jnp.ndarray
 
@@ -34,7 +51,7 @@ class SineDisplacement(eqx.Module):
         return jnp.prod(jnp.sin(self.frequency * p))
 
     def lipschitz(self):
-        return jnp.abs(self.frequency) * jnp.sqrt(3.0)
+        return jnp.abs(self.frequency)
 
 
 class Displace(SDF):
@@ -52,15 +69,20 @@ class Displace(SDF):
     displacement_lipschitz: float | None = eqx.field(static=True)
 
     def __init__(self, child, displacement=None, amplitude=0.1, lipschitz=None):
-        self.child = child
+        self.child = check_sdf(child, "Displace(child=...)")
         self.displacement = SineDisplacement() if displacement is None else displacement
+        if not callable(self.displacement):
+            raise TypeError("`Displace(displacement=...)` must be callable on a point, got "
+                            f"{type(self.displacement).__name__}")
         self.amplitude = as_float(amplitude, (), "Displace(amplitude=...)")
         if lipschitz is None and not hasattr(self.displacement, "lipschitz"):
             raise ValueError(
                 "`Displace(lipschitz=...)` is required when the displacement function "
                 "has no `lipschitz()` method: give a bound on |∇g|"
             )
-        self.displacement_lipschitz = None if lipschitz is None else float(lipschitz)
+        self.displacement_lipschitz = (
+            None if lipschitz is None
+            else float(non_negative(lipschitz, (), "Displace(lipschitz=...)")))
 
     def children(self):
         return (self.child,)
@@ -91,9 +113,9 @@ class Twist(SDF):
     radius: jnp.ndarray
 
     def __init__(self, child, rate=1.0, radius=1.0):
-        self.child = child
+        self.child = check_sdf(child, "Twist(child=...)")
         self.rate = as_float(rate, (), "Twist(rate=...)")
-        self.radius = as_float(radius, (), "Twist(radius=...)")
+        self.radius = positive(radius, (), "Twist(radius=...)")
 
     def children(self):
         return (self.child,)
@@ -105,13 +127,14 @@ class Twist(SDF):
         return self.child.eval(q)
 
     def lipschitz(self):
-        return self.child.lipschitz() * _warp_lipschitz(self.rate, self.radius)
+        return self.child.lipschitz() * _twist_lipschitz(self.rate, self.radius)
 
 
 class Bend(SDF):
     """Cheap bend (opCheapBend): the xy plane rotated by `rate`·x radians.
 
-    `radius` bounds |p.xy| over the region that matters; Lipschitz factor as `Twist`.
+    `radius` bounds |p.xy| over the region that matters; the Lipschitz factor is
+    1 + |rate|·radius.
     Differentiable: `rate`.
     """
 
@@ -120,9 +143,9 @@ class Bend(SDF):
     radius: jnp.ndarray
 
     def __init__(self, child, rate=0.5, radius=1.0):
-        self.child = child
+        self.child = check_sdf(child, "Bend(child=...)")
         self.rate = as_float(rate, (), "Bend(rate=...)")
-        self.radius = as_float(radius, (), "Bend(radius=...)")
+        self.radius = positive(radius, (), "Bend(radius=...)")
 
     def children(self):
         return (self.child,)
@@ -134,4 +157,4 @@ class Bend(SDF):
         return self.child.eval(q)
 
     def lipschitz(self):
-        return self.child.lipschitz() * _warp_lipschitz(self.rate, self.radius)
+        return self.child.lipschitz() * _bend_lipschitz(self.rate, self.radius)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..vecmath import cross, dot, normalize, safe_div
-from .base import SDF, as_float
+from .base import SDF, as_float, check, check_sdf, non_negative, positive
 
 
 def rotate_axis_angle(p, axis, angle):
@@ -51,7 +51,7 @@ class Translate(_Wrap):
     offset: jnp.ndarray
 
     def __init__(self, child, offset=(0.0, 0.0, 0.0)):
-        self.child = child
+        self.child = check_sdf(child, "Translate(child=...)")
         self.offset = as_float(offset, (3,), "Translate(offset=...)")
 
     def eval(self, p):
@@ -70,10 +70,14 @@ class Rotate(_Wrap):
     angle: jnp.ndarray
 
     def __init__(self, child, axis=(0.0, 1.0, 0.0), angle=0.0, quaternion=None):
-        self.child = child
+        self.child = check_sdf(child, "Rotate(child=...)")
         if quaternion is not None:
-            axis, angle = quaternion_to_axis_angle(quaternion)
-        self.axis = as_float(axis, (3,), "Rotate(axis=...)")
+            try:
+                axis, angle = quaternion_to_axis_angle(quaternion)
+            except ValueError as e:
+                raise ValueError(f"`Rotate(quaternion=...)`: {e}") from None
+        self.axis = check(as_float(axis, (3,), "Rotate(axis=...)"),
+                          lambda a: np.linalg.norm(a) > 0.0, "Rotate(axis=...)", "non-zero")
         self.angle = as_float(angle, (), "Rotate(angle=...)")
 
     def eval(self, p):
@@ -93,7 +97,7 @@ class Transform(_Wrap):
     translation: jnp.ndarray
 
     def __init__(self, child, rotation=np.eye(3), translation=(0.0, 0.0, 0.0)):
-        self.child = child
+        self.child = check_sdf(child, "Transform(child=...)")
         self.rotation = as_float(rotation, (3, 3), "Transform(rotation=...)")
         self.translation = as_float(translation, (3,), "Transform(translation=...)")
         if not isinstance(self.rotation, jax.core.Tracer):
@@ -112,8 +116,8 @@ class Scale(_Wrap):
     factor: jnp.ndarray
 
     def __init__(self, child, factor=1.0):
-        self.child = child
-        self.factor = as_float(factor, (), "Scale(factor=...)")
+        self.child = check_sdf(child, "Scale(child=...)")
+        self.factor = positive(factor, (), "Scale(factor=...)")
 
     def eval(self, p):
         d, m = self.child.eval(safe_div(p, self.factor))
@@ -134,8 +138,8 @@ class Repeat(_Wrap):
     count: tuple | None = eqx.field(static=True)
 
     def __init__(self, child, period=(1.0, 1.0, 1.0), count=None):
-        self.child = child
-        self.period = as_float(period, (3,), "Repeat(period=...)")
+        self.child = check_sdf(child, "Repeat(child=...)")
+        self.period = non_negative(period, (3,), "Repeat(period=...)")
         if count is not None:
             count = tuple(int(c) for c in np.broadcast_to(np.asarray(count), (3,)))
             if min(count) < 0:

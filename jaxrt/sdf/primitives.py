@@ -5,10 +5,12 @@ Formulas follow Inigo Quilez, "distance functions" (iquilezles.org), as in the n
 Euclidean signed distance or only a bound (|f| ≤ true distance, same sign).
 """
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..vecmath import dot, safe_div, safe_norm, safe_sqrt
-from .base import Primitive, as_float
+from .base import Primitive, as_float, check, material_index, non_negative, positive
 
 
 # -- plain distance functions (point first, then the shape's parameters) -------------
@@ -74,14 +76,22 @@ def sd_cylinder(p, radius, half_height):
 
 
 def sd_ellipsoid(p, radii):
-    """Bound (not exact): IQ's ellipsoid k0·(k0 − 1)/k1 with k0 = |p/r|, k1 = |p/r²|.
+    """Bound (not exact), with k0 = |p/r| and k1 = |p/r²|:
 
-    Exact on the surface and along the axes; |f| never exceeds the true distance.
+    - outside (k0 > 1): IQ's ellipsoid bound k0·(k0 − 1)/k1, exact on the surface,
+      with a unit gradient there;
+    - inside: (k0 − 1)·min(r). IQ's formula overestimates the depth there (by up to
+      max(r)/min(r): near the centre on the longest axis it gives −max(r), while the
+      surface is min(r) away). k0 has Lipschitz constant 1/min(r) and vanishes on the
+      surface, so (k0 − 1)·min(r) is a bound; it is exact at the centre.
+
+    |f| never exceeds the true distance, and the sign is exact.
     """
     k0 = safe_norm(p / radii)
     k1 = safe_norm(p / (radii * radii))
-    # At the centre k1 = 0: the distance there is −min(radii).
-    return jnp.where(k1 > 0.0, safe_div(k0 * (k0 - 1.0), k1), -jnp.min(radii))
+    outside = safe_div(k0 * (k0 - 1.0), k1)
+    inside = (k0 - 1.0) * jnp.min(radii)
+    return jnp.where(k0 > 1.0, outside, inside)
 
 
 # -- scene nodes ---------------------------------------------------------------------
@@ -93,8 +103,8 @@ class Sphere(Primitive):
     radius: jnp.ndarray
 
     def __init__(self, radius=1.0, material=0):
-        self.radius = as_float(radius, (), "Sphere(radius=...)")
-        self.material = int(material)
+        self.radius = positive(radius, (), "Sphere(radius=...)")
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         return sd_sphere(p, self.radius)
@@ -110,9 +120,10 @@ class Plane(Primitive):
     offset: jnp.ndarray
 
     def __init__(self, normal=(0.0, 1.0, 0.0), offset=0.0, material=0):
-        self.normal = as_float(normal, (3,), "Plane(normal=...)")
+        self.normal = check(as_float(normal, (3,), "Plane(normal=...)"),
+                            lambda n: np.linalg.norm(n) > 0.0, "Plane(normal=...)", "non-zero")
         self.offset = as_float(offset, (), "Plane(offset=...)")
-        self.material = int(material)
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         n = self.normal / safe_norm(self.normal)
@@ -125,8 +136,8 @@ class Box(Primitive):
     half_extents: jnp.ndarray
 
     def __init__(self, half_extents=(1.0, 1.0, 1.0), material=0):
-        self.half_extents = as_float(half_extents, (3,), "Box(half_extents=...)")
-        self.material = int(material)
+        self.half_extents = positive(half_extents, (3,), "Box(half_extents=...)")
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         return sd_box(p, self.half_extents)
@@ -139,9 +150,13 @@ class RoundBox(Primitive):
     radius: jnp.ndarray
 
     def __init__(self, half_extents=(1.0, 1.0, 1.0), radius=0.1, material=0):
-        self.half_extents = as_float(half_extents, (3,), "RoundBox(half_extents=...)")
-        self.radius = as_float(radius, (), "RoundBox(radius=...)")
-        self.material = int(material)
+        self.half_extents = positive(half_extents, (3,), "RoundBox(half_extents=...)")
+        self.radius = non_negative(radius, (), "RoundBox(radius=...)")
+        # The box is shrunk by `radius` before it is rounded: radius ≤ every half extent.
+        if not isinstance(self.half_extents, jax.core.Tracer):
+            check(self.radius, lambda r: r <= np.min(np.asarray(self.half_extents)),
+                  "RoundBox(radius=...)", "≤ every half extent (the box is shrunk by it)")
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         return sd_round_box(p, self.half_extents, self.radius)
@@ -154,9 +169,9 @@ class Torus(Primitive):
     minor_radius: jnp.ndarray
 
     def __init__(self, major_radius=1.0, minor_radius=0.25, material=0):
-        self.major_radius = as_float(major_radius, (), "Torus(major_radius=...)")
-        self.minor_radius = as_float(minor_radius, (), "Torus(minor_radius=...)")
-        self.material = int(material)
+        self.major_radius = positive(major_radius, (), "Torus(major_radius=...)")
+        self.minor_radius = positive(minor_radius, (), "Torus(minor_radius=...)")
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         return sd_torus(p, self.major_radius, self.minor_radius)
@@ -169,9 +184,9 @@ class Cone(Primitive):
     height: jnp.ndarray
 
     def __init__(self, radius=1.0, height=1.0, material=0):
-        self.radius = as_float(radius, (), "Cone(radius=...)")
-        self.height = as_float(height, (), "Cone(height=...)")
-        self.material = int(material)
+        self.radius = positive(radius, (), "Cone(radius=...)")
+        self.height = positive(height, (), "Cone(height=...)")
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         return sd_cone(p, self.radius, self.height)
@@ -184,9 +199,9 @@ class Capsule(Primitive):
     radius: jnp.ndarray
 
     def __init__(self, half_height=0.5, radius=0.25, material=0):
-        self.half_height = as_float(half_height, (), "Capsule(half_height=...)")
-        self.radius = as_float(radius, (), "Capsule(radius=...)")
-        self.material = int(material)
+        self.half_height = non_negative(half_height, (), "Capsule(half_height=...)")
+        self.radius = positive(radius, (), "Capsule(radius=...)")
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         return sd_capsule(p, self.half_height, self.radius)
@@ -199,9 +214,9 @@ class Cylinder(Primitive):
     half_height: jnp.ndarray
 
     def __init__(self, radius=0.5, half_height=0.5, material=0):
-        self.radius = as_float(radius, (), "Cylinder(radius=...)")
-        self.half_height = as_float(half_height, (), "Cylinder(half_height=...)")
-        self.material = int(material)
+        self.radius = positive(radius, (), "Cylinder(radius=...)")
+        self.half_height = positive(half_height, (), "Cylinder(half_height=...)")
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         return sd_cylinder(p, self.radius, self.half_height)
@@ -213,8 +228,8 @@ class Ellipsoid(Primitive):
     radii: jnp.ndarray
 
     def __init__(self, radii=(1.0, 0.5, 0.5), material=0):
-        self.radii = as_float(radii, (3,), "Ellipsoid(radii=...)")
-        self.material = int(material)
+        self.radii = positive(radii, (3,), "Ellipsoid(radii=...)")
+        self.material = material_index(material, f"{type(self).__name__}(material=...)")
 
     def distance(self, p):
         return sd_ellipsoid(p, self.radii)
