@@ -150,7 +150,9 @@ class PhongNDF(MicrofacetDistribution):
 
     Notes, "Phong distribution"; Walter et al. 2007, eq. 30. It has no closed-form Smith
     Λ; we use Beckmann's Λ at the corresponding roughness α_b = sqrt(2 / (α_p + 2))
-    (notes: α_p = 2 α_b⁻² − 2; Walter et al. 2007 §5.2).
+    (notes: α_p = 2 α_b⁻² − 2; Walter et al. 2007 §5.2). This Λ is only approximately
+    Smith-consistent with the Phong D: ∫ G1 <wo·wm>⁺ D dωm = cos θo holds to 1.3 % up to
+    80° for α_p ≥ 20, but is 17 % off at 80° for α_p = 2 (tests/test_bsdf_microfacet.py).
 
     Parameters (differentiable): `exponent` α_p ≥ 0 (negative values are clamped to 0).
     """

@@ -19,9 +19,9 @@ class Ward(Material):
     N = cos θi cos θo (`normalization="duer"`: Dür 2006, "An improved normalization for
     the Ward reflectance model", JGT 11(1); the "Ward-Duer" model of Ngan et al. 2005).
 
-    Positive and reciprocal. Not strictly energy-conserving: the Dür form's albedo
-    exceeds 1 at grazing incidence for rough surfaces (see the tests for the measured
-    maxima).
+    Positive and reciprocal. Not strictly energy-conserving near grazing incidence:
+    measured directional albedo with rho_s = 1, rho_d = 0, α = 0.3 is ≤ 0.8 up to 80°
+    for both forms, but at 89° / 89.9° it is 0.36 / 1.04 (Ward) and 4.3 / 39 (Dür).
 
     Parameters (differentiable): `rho_d`, `rho_s` (RGB), `alpha` > 0 (scalar, clamped to
     `MIN_ALPHA`). Static: `normalization`.
