@@ -1,15 +1,43 @@
-"""Whitted shading (notes, "Ray tracing": trace and directIllumination).
+"""Whitted ray tracing, unrolled to a static depth (notes, "Ray tracing").
 
-`trace_radiance` follows one camera ray: it sphere-traces the scene, shades the hit
-with direct illumination from every light (one shadow ray each), and returns the
-radiance with the hit's AOVs. Kernels handle one ray; `render` vmaps them.
+    color trace(ray):
+        hit = intersectScene(ray)
+        if hit:  color = directIllumination(hit)
+                         + c_refl · trace(reflected ray)      if hit is reflective
+                         + c_trans · trace(refracted ray)     if hit is transmissive
+        else:    color = background
+
+The recursion is unrolled in Python to `settings.max_depth`: level k of the ray tree is
+one batch of rays (vmapped), each with a weight (the product of the c_refl/c_trans
+along its path), traced and shaded together; level k + 1 holds their children. The tree
+is static and has only the branches that the scene's materials can produce
+(`ray_tree`): no transmissive material, no refracted rays (one ray per level); no
+reflective or transmissive material, no secondary level at all, whatever max_depth;
+no dispersive material, one RGB band. Rays whose parent missed, hit a material that
+does not spawn them, or underwent total internal reflection are dead: they keep their
+slot in the batch but stop at their first step and add nothing.
+
+Precision (notes, "Precision"): a secondary ray starts `spawn_offset` off the surface,
+on the side it leaves (the viewer's side for reflection, the far side for refraction),
+so that it neither re-hits the surface it leaves nor starts on the wrong side; rays that
+start inside an object march |f| (`sphere_trace`) and find where they leave it.
+
+Media: a refracted ray that enters a `Dielectric` carries its absorption σ_a until it
+leaves, and every segment it travels is weighted by exp(−σ_a t) (Beer–Lambert). The
+outside medium is vacuum (nested dielectrics are not modelled). Shadow rays treat every
+surface as opaque (Whitted 1980: no caustics through glass).
+
+Kernels handle one camera ray; `render` vmaps them.
 """
+
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
+from .bsdf.scattering import reflect, refract
 from .lights import shadow_ray
-from .trace import sphere_trace, surface_normal
+from .trace import hit_epsilon, sphere_trace, surface_normal
 from .vecmath import dot, to_local
 
 
@@ -20,71 +48,274 @@ def select(values, index):
     return jnp.stack(values)[index]
 
 
-def spawn_offset(p, settings):
+def spawn_offset(p, settings, epsilon=None):
     """Distance that a secondary ray starts off the surface at `p`.
 
-    ray_offset · (hit_epsilon + 8 · machine-epsilon · max|pᵢ|): a few hit epsilons, so
-    that the new ray does not re-hit the surface it leaves, plus the rounding error of
-    the hit point's coordinates, so that it also works far from the origin.
+    ray_offset · (ε + 8 · machine-epsilon · max|pᵢ|), where ε is the hit epsilon in
+    effect at the hit (settings.hit_epsilon by default; with a pixel epsilon, the
+    epsilon of the pixel cone at the hit distance). The first term puts the origin
+    beyond the band |f| < ε in which the marcher declares a hit (ray_offset = 4 leaves a
+    margin of 3ε for the curvature of the surface and the error of the hit point), so
+    the new ray does not re-hit the surface it leaves, also when it starts inside an
+    object. The second is the rounding error of the hit point's coordinates (a few ulps
+    of the largest), so that the offset also works far from the origin (pbrt-v4
+    `OffsetRayOrigin` bounds the same error per coordinate).
     """
+    eps = settings.hit_epsilon if epsilon is None else epsilon
     rounding = 8.0 * jnp.finfo(p.dtype).eps * jnp.max(jnp.abs(p))
-    return settings.ray_offset * (settings.hit_epsilon + rounding)
+    return settings.ray_offset * (eps + rounding)
 
 
-def direct_lighting(scene, p, n, wo, material, settings):
+def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True):
     """Σ_lights f(wo, wi) · E · cos θi · V  +  ambient, at point p with normal n (facing wo).
 
     f is the material's BRDF in the local frame of n; E the light's irradiance
-    (I / r² for point lights); V the shadow-ray visibility.
+    (I / r² for point lights); V the shadow-ray visibility. `colour` turns RGB values
+    into the colour representation of the render (RGB: identity; spectral: the value
+    at one wavelength), applied to f and E separately. Inactive lanes trace no shadow
+    ray (it stops at its first step).
     """
+    colour = _rgb if colour is None else colour
     wo_local = to_local(wo, n)
     origin = p + spawn_offset(p, settings) * n
-    radiance = select([m.ambient() for m in scene.materials], material)
+    # ambient() may come in the default float dtype (Material's zeros): cast to p's.
+    radiance = colour(select([m.ambient().astype(p.dtype) for m in scene.materials], material))
+    diffuse = [m for m in scene.materials if m.has_diffuse]
+    if not diffuse:
+        return radiance
+    index = _index_table(scene.materials, lambda m: m.has_diffuse, material)
     for light in scene.lights:
         wi, dist, irradiance = light.illuminate(p)
         cos_i = dot(wi, n)
         wi_local = to_local(wi, n)
-        f = select([m.eval(wo_local, wi_local) for m in scene.materials if m.has_diffuse]
-                   or [jnp.zeros(3, p.dtype)], _diffuse_index(scene, material))
+        f = select([m.eval(wo_local, wi_local) for m in diffuse] + [jnp.zeros(3, p.dtype)], index)
+        lit = active & (cos_i > 0.0)
+        dist = jnp.where(lit, dist, 0.0)
         visible = shadow_ray(scene.surface, origin, wi, dist, settings)
-        radiance = radiance + jnp.where(cos_i > 0.0, f * irradiance * cos_i * visible, 0.0)
+        radiance = radiance + jnp.where(lit, colour(f) * colour(irradiance) * cos_i * visible, 0.0)
     return radiance
 
 
-def _diffuse_index(scene, material):
-    """Map a material index to its position among the materials with `has_diffuse`."""
-    table = []
-    k = 0
-    for m in scene.materials:
-        table.append(k)
-        k += int(m.has_diffuse)
-    return jnp.asarray(table, jnp.int32)[material] if len(table) > 1 else 0
+def _rgb(x):
+    return x
 
 
-def trace_radiance(scene, origin, direction, cone, settings):
-    """Radiance and AOVs of one camera ray.
+def _index_table(materials, predicate, material):
+    """Position of `material` among the materials with `predicate`, or their count if
+    it has not (the slot of a default appended to their list)."""
+    table, k = [], 0
+    count = sum(bool(predicate(m)) for m in materials)
+    for m in materials:
+        table.append(k if predicate(m) else count)
+        k += int(bool(predicate(m)))
+    if len(set(table)) == 1:
+        return table[0]
+    return jnp.asarray(table, jnp.int32)[material]
 
-    Returns a dict: rgb [3], depth (hit distance; max_distance on a miss), normal [3]
-    (world space, facing the camera; 0 on a miss), albedo [3], steps, coverage (1 on a
-    hit, 0 on a miss).
+
+def _select_material(materials, predicate, fn, default, material):
+    """fn(m) for the material with index `material` if predicate(m), else `default`;
+    fn is evaluated only for the materials with the predicate (a static filter)."""
+    chosen = [fn(m) for m in materials if predicate(m)]
+    if not chosen:
+        return default
+    values = chosen + [default]
+    index = _index_table(materials, predicate, material)
+    return jax.tree_util.tree_map(lambda *xs: select(list(xs), index), *values)
+
+
+# -- the static ray tree ------------------------------------------------------------
+
+
+class RayTree(NamedTuple):
+    """The static shape of the ray tree of one camera ray.
+
+    branches     children of each hit: () or ("reflect",) or ("reflect", "transmit")
+                 (or ("transmit",)).
+    depth        levels of secondary rays (max_depth, or 0 without branches).
+    direct       some material is lit directly (shadow rays are traced).
+    wavelengths  wavelength samples (0: RGB rendering).
     """
+
+    branches: tuple
+    depth: int
+    direct: bool
+    wavelengths: int
+
+    def rays_per_level(self):
+        """Batch size of each level: b^k for b branches."""
+        return [len(self.branches) ** k for k in range(self.depth + 1)]
+
+
+def ray_tree(scene, settings, spectral=None):
+    """The `RayTree` that `trace_radiance` unrolls for `scene` and `settings`.
+
+    Reflected rays exist if some material `has_reflection`, refracted ones if some
+    `has_transmission`; depth is `settings.max_depth` if either exists, else 0.
+    Spectral rendering (`settings.wavelengths` samples) only if some material
+    `is_dispersive` (or `spectral=True` forces it, for tests and comparisons;
+    `spectral=False` forces RGB).
+    """
+    branches = tuple(name for name, flag in (("reflect", "has_reflection"),
+                                             ("transmit", "has_transmission"))
+                     if scene.flags(flag))
+    depth = settings.max_depth if branches else 0
+    if spectral is None:
+        spectral = scene.flags("is_dispersive")
+    wavelengths = settings.wavelengths if spectral else 0
+    if spectral and wavelengths == 0:
+        raise ValueError("spectral rendering needs RenderSettings.wavelengths ≥ 1")
+    return RayTree(branches, depth, scene.flags("has_diffuse"), wavelengths)
+
+
+class _Rays(NamedTuple):
+    """One ray (or, with a leading batch axis, one level of the tree)."""
+
+    origin: jnp.ndarray      # [3]
+    direction: jnp.ndarray   # [3] unit
+    cone: jnp.ndarray        # [2] pixel cone (r0, spread)
+    weight: jnp.ndarray      # [C] product of the c_refl/c_trans along the path
+    sigma: jnp.ndarray       # [C] absorption coefficient of the medium it travels in
+    alive: jnp.ndarray       # bool
+
+
+def _shade(scene, settings, tree, colour, wavelength, spawn, ray):
+    """Trace and shade one ray of the tree; returns (radiance [C], children, aovs)."""
     surface = scene.surface
-    hit = sphere_trace(surface, origin, direction, settings, cone=cone)
-    p = origin + hit.t * direction
-    n = surface_normal(surface, p, settings)
-    # Shade with the normal facing the viewer (rays that start inside a surface see
-    # its back side).
-    n = jnp.where(dot(n, direction) > 0.0, -n, n)
+    o, d, cone = ray.origin, ray.direction, ray.cone
+    dtype = o.dtype
+    t_max = jnp.where(ray.alive, jnp.asarray(settings.max_distance, dtype), 0.0)
+    hit = sphere_trace(surface, o, d, settings, cone=cone, t_max=t_max)
+    found = hit.hit & ray.alive
+    p = o + hit.t * d
+    n_out = surface_normal(surface, p, settings)
+    entering = dot(n_out, d) <= 0.0  # the ray arrives from outside
+    n = jnp.where(entering, n_out, -n_out)  # faces the viewer
     material = jnp.clip(surface.eval(jax.lax.stop_gradient(p))[1], 0, len(scene.materials) - 1)
-    wo = -direction
-    color = direct_lighting(scene, p, n, wo, material, settings)
+    wo = -d
+
+    if tree.direct:
+        local = direct_lighting(scene, p, n, wo, material, settings, colour, active=found)
+    else:
+        local = colour(select([m.ambient().astype(dtype) for m in scene.materials], material))
+    radiance = jnp.where(found, local, jnp.where(ray.alive, colour(scene.background), 0.0))
+    # Beer–Lambert along the segment (σ = 0 outside any medium).
+    throughput = ray.weight * jnp.exp(-ray.sigma * hit.t)
+    out = throughput * radiance
+
     albedo = select([m.base_color() for m in scene.materials], material)
-    zero3 = jnp.zeros(3, p.dtype)
-    return {
-        "rgb": jnp.where(hit.hit, color, scene.background),
+    zero3 = jnp.zeros(3, dtype)
+    aovs = {
         "depth": hit.t,
-        "normal": jnp.where(hit.hit, n, zero3),
-        "albedo": jnp.where(hit.hit, albedo, zero3),
-        "steps": hit.steps.astype(p.dtype),
-        "coverage": hit.hit.astype(p.dtype),
+        "normal": jnp.where(found, n, zero3),
+        "albedo": jnp.where(found, albedo, zero3),
+        "steps": hit.steps.astype(dtype),
+        "coverage": found.astype(dtype),
     }
+    if not spawn:
+        return out, (), aovs
+
+    specular = lambda m: m.has_reflection or m.has_transmission  # noqa: E731
+    zeros = jnp.zeros(3, dtype)
+    c_refl, c_trans, eta = _select_material(
+        scene.materials, specular, lambda m: m.specular(dot(n_out, wo), wavelength),
+        (zeros, zeros, jnp.ones((), dtype)), material)
+    eps = hit_epsilon(settings, hit.t, cone)
+    offset = spawn_offset(p, settings, eps)
+    child_cone = jnp.stack([cone[0] + cone[1] * hit.t, cone[1]])
+    children = []
+    for branch in tree.branches:
+        if branch == "reflect":
+            spawns = _select_material(scene.materials, lambda m: m.has_reflection,
+                                      lambda m: jnp.ones((), bool), jnp.zeros((), bool), material)
+            children.append(_Rays(p + offset * n, reflect(wo, n), child_cone,
+                                  throughput * colour(c_refl), ray.sigma, found & spawns))
+        else:
+            spawns = _select_material(scene.materials, lambda m: m.has_transmission,
+                                      lambda m: jnp.ones((), bool), jnp.zeros((), bool), material)
+            wt, valid = refract(wo, n_out, eta)
+            inside = _select_material(scene.materials, lambda m: m.has_transmission,
+                                      lambda m: getattr(m, "absorption", zeros), zeros, material)
+            sigma = jnp.where(entering, colour(inside), 0.0)
+            weight = jnp.where(valid, throughput * colour(c_trans), 0.0)
+            children.append(_Rays(p - offset * n, wt, child_cone, weight, sigma,
+                                  found & spawns & valid))
+    return out, tuple(children), aovs
+
+
+def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):
+    """Radiance [channels] of one camera ray and the AOVs of its first hit."""
+    dtype = origin.dtype
+    rays = _Rays(origin[None], direction[None], cone[None], jnp.ones((1, channels), dtype),
+                 jnp.zeros((1, channels), dtype), jnp.ones((1,), bool))
+    total = jnp.zeros(channels, dtype)
+    aovs = None
+    for level in range(tree.depth + 1):
+        spawn = level < tree.depth
+
+        def shade(ray, spawn=spawn):
+            return _shade(scene, settings, tree, colour, wavelength, spawn, ray)
+
+        out, children, level_aovs = jax.vmap(shade)(rays)
+        total = total + jnp.sum(out, axis=0)
+        if level == 0:
+            aovs = jax.tree_util.tree_map(lambda x: x[0], level_aovs)
+        if spawn:
+            # [B, b, ...] -> [B·b, ...]: the children of ray i are rays b·i … b·i + b − 1.
+            rays = jax.tree_util.tree_map(
+                lambda *xs: jnp.stack(xs, axis=1).reshape((-1,) + xs[0].shape[1:]), *children)
+    return total, aovs
+
+
+def trace_radiance(scene, origin, direction, cone, settings, spectral=None):
+    """Radiance and AOVs of one camera ray, through the Whitted ray tree of `ray_tree`.
+
+    Returns a dict: rgb [3] (linear), depth (hit distance; max_distance on a miss),
+    normal [3] (world space, facing the camera; 0 on a miss), albedo [3], steps,
+    coverage (1 on a hit, 0 on a miss). The AOVs are those of the first hit.
+    `spectral`: None (spectral only for dispersive scenes), True or False (forced).
+    """
+    tree = ray_tree(scene, settings, spectral)
+    if tree.wavelengths == 0:
+        rgb, aovs = _trace_tree(scene, origin, direction, cone, settings, tree, _rgb, 3, None)
+    else:
+        rgb, aovs = _trace_spectral(scene, origin, direction, cone, settings, tree)
+    return {"rgb": rgb, **aovs}
+
+
+def _trace_spectral(scene, origin, direction, cone, settings, tree):
+    """Spectral rendering: the tree is traced once per wavelength sample (vmapped), every
+    RGB quantity (BRDF values, light colours, tints, absorption, background) becomes its
+    value at λ through the linear basis of `spectral.rgb_to_spectrum`, dispersive indices
+    are evaluated at λ, and the N radiances become linear sRGB (`spectrum_to_rgb`).
+
+    The N samples are stratified over 380–780 nm with one jitter per camera ray (a hash
+    of the ray, constant in the scene parameters), so neighbouring pixels sample
+    different wavelengths: banding becomes noise that averages out with `spp`.
+    """
+    from . import spectral
+
+    dtype = origin.dtype
+    jitter = _ray_hash(jax.lax.stop_gradient(origin), jax.lax.stop_gradient(direction))
+    lambdas = spectral.sample_wavelengths(tree.wavelengths, jitter.astype(dtype))
+
+    def one(lam):
+        basis = jnp.stack([spectral.rgb_to_spectrum(e, lam[None])[0]
+                           for e in jnp.eye(3, dtype=dtype)])
+
+        def colour(x):
+            return jnp.dot(basis, x)[None]
+
+        return _trace_tree(scene, origin, direction, cone, settings, tree, colour, 1, lam)
+
+    values, aovs = jax.vmap(one)(lambdas)
+    rgb = spectral.spectrum_to_rgb(values[:, 0], lambdas)
+    return rgb, jax.tree_util.tree_map(lambda x: x[0], aovs)
+
+
+def _ray_hash(origin, direction):
+    """A pseudo-random number in [0, 1) from a ray (the shader hash fract(sin(x)·43758.5453))."""
+    x = jnp.dot(direction, jnp.array([12.9898, 78.233, 37.719], direction.dtype)) * 1e3 \
+        + jnp.dot(origin, jnp.array([3.7, 11.3, 5.1], origin.dtype))
+    h = jnp.sin(x) * 43758.5453
+    return jnp.clip(h - jnp.floor(h), 0.0, 0.999999)
