@@ -1,0 +1,524 @@
+"""Fitting analytic BRDFs to tabulated (MERL) measurements, after Ngan et al. 2005.
+
+Ngan, Durand & Matusik 2005, "Experimental Analysis of BRDF Models" (EGSR), fit each
+model to the isotropic MERL tables (Matusik et al. 2003) by weighted least squares on
+*cosine-weighted* values, with directions beyond 80° from the normal left out:
+
+    E(p)² = Σ_s w_s Σ_c [f_c(s) cos θi(s) − f_{p,c}(s) cos θi(s)]² / (3 Σ_s w_s),
+
+s over the sampled (wo, wi) pairs, c over the RGB channels, w_s the solid-angle weight
+of a table cell (`merl_cell_weights`): with it, E² estimates the mean over hemisphere
+pairs of the squared difference, so densely tabulated regions (MERL's θh axis is
+quadratic, dense near the highlight) do not count more than they cover. E is what
+`ngan_error` returns and what the notes' "BRDF comparison" slides quote per model.
+
+The objective can compress the cosine-weighted values before differencing
+(`compression`): "none" (E itself, dominated by the highlight), "cbrt" (cube root,
+Löw et al. 2012 and the perceptual fits that followed Ngan et al.: closer to how a
+rendered image differs) or "log" (log(ε + y): relative errors everywhere). The error
+table always reports the uncompressed E as well.
+
+Parameterisation: every model parameter is a transform of an unconstrained value, so
+that any optimiser step gives a valid model: reflectances ≥ 0 through softplus,
+roughness and exponents > 0 through exp, Fresnel reflectances in (0, 1) through the
+logistic function (`Parameter.transform`). Gradients are JAX's; the solvers are
+optimistix's Levenberg–Marquardt (`optx.least_squares`) or BFGS (`optx.minimise`), run
+from several starting roughnesses, keeping the best.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from . import bsdf
+from .bsdf.base import Material
+from .io import MERL_SHAPE, merl_angles
+
+#: Fresnel f0 and Ashikhmin–Shirley rs start here (a dielectric of index ≈ 1.5).
+F0_START = 0.04
+#: ε of the "log" compression log(ε + f cos θi): cosine-weighted values (1/sr) below
+#: this count as equally dark; about the noise floor of MERL's diffuse measurements.
+LOG_EPSILON = 1e-3
+#: ε of the "cbrt" compression (ε + y)^(1/3): keeps its slope finite at y = 0.
+CBRT_EPSILON = 1e-6
+COMPRESSIONS = ("none", "cbrt", "log")
+SOLVERS = ("levenberg_marquardt", "bfgs")
+WEIGHTINGS = ("solid_angle", "uniform")
+
+
+# --------------------------------------------------------------------------- data
+
+
+class BRDFSamples(NamedTuple):
+    """Measured BRDF values at direction pairs (local frame, normal +z).
+
+    wo, wi   [N, 3] unit directions, both above the horizon.
+    f        [N, 3] measured f_r (linear RGB, 1/sr), ≥ 0.
+    weight   [N] weight of each sample in the error (sums to 1).
+    """
+
+    wo: jnp.ndarray
+    wi: jnp.ndarray
+    f: jnp.ndarray
+    weight: jnp.ndarray
+
+
+def merl_directions(theta_h, theta_d, phi_d):
+    """(wo, wi), each [..., 3], for Rusinkiewicz angles with φh = 0 (isotropy): the
+    inverse of `jaxrt.io.half_diff_angles`.
+
+    wh = (sin θh, 0, cos θh), wd = (sin θd cos φd, sin θd sin φd, cos θd);
+    wi = R_y(θh) wd (wd rotated by +θh about y, taking +z to wh), wo = 2 (wi·wh) wh − wi.
+    """
+    theta_h, theta_d, phi_d = (np.asarray(a, np.float64) for a in (theta_h, theta_d, phi_d))
+    st, ct = np.sin(theta_h), np.cos(theta_h)
+    wd = np.stack([np.sin(theta_d) * np.cos(phi_d), np.sin(theta_d) * np.sin(phi_d),
+                   np.cos(theta_d)], axis=-1)
+    wi = np.stack([ct * wd[..., 0] + st * wd[..., 2], wd[..., 1],
+                   -st * wd[..., 0] + ct * wd[..., 2]], axis=-1)
+    wh = np.stack([st, np.zeros_like(st), ct], axis=-1)
+    wo = 2.0 * np.sum(wi * wh, axis=-1, keepdims=True) * wh - wi
+    return wo, wi
+
+
+def merl_cell_weights():
+    """Solid-angle measure of every MERL cell, [90, 90, 180] (relative).
+
+    dωi dωo = 4 cos θd dωh dωd = 4 cos θd sin θd sin θh dθh dθd dφh dφd (the half-vector
+    Jacobian dωo = 4 (wi·wh) dωh; Rusinkiewicz 1998), with dθh of cell i equal to
+    ((i + 1)² − i²) / 90² · π/2 on MERL's quadratic θh axis; dθd and dφd are constant.
+    """
+    theta_h, theta_d, _ = merl_angles()
+    i = np.arange(MERL_SHAPE[0], dtype=np.float64)
+    d_theta_h = ((i + 1.0) ** 2 - i**2) / MERL_SHAPE[0] ** 2 * (np.pi / 2)
+    return 4.0 * np.cos(theta_d) * np.sin(theta_d) * np.sin(theta_h) * d_theta_h[:, None, None]
+
+
+def merl_valid_mask(table, max_theta_deg=80.0):
+    """[90, 90, 180] True where every channel is finite and ≥ 0 (MERL marks missing
+    measurements with negative values) and both directions are within `max_theta_deg`
+    of the normal (Ngan et al. 2005 leave out θ > 80°)."""
+    table = np.asarray(table)
+    if table.shape != (*MERL_SHAPE, 3):
+        raise ValueError(f"`table` has shape {table.shape}, expected {(*MERL_SHAPE, 3)}")
+    if not 0.0 < max_theta_deg <= 90.0:
+        raise ValueError(f"`max_theta_deg` = {max_theta_deg}, expected a number in (0, 90]")
+    wo, wi = merl_directions(*merl_angles())
+    cos_max = np.cos(np.deg2rad(max_theta_deg))
+    inside = (wo[..., 2] > max(cos_max, 0.0)) & (wi[..., 2] > max(cos_max, 0.0))
+    measured = np.all(np.isfinite(table) & (table >= 0.0), axis=-1)
+    return inside & measured
+
+
+def sample_merl(table, num_samples, *, max_theta_deg=80.0, weighting="solid_angle", seed=0):
+    """A `BRDFSamples` of `num_samples` cells drawn uniformly without replacement from
+    the valid cells of a [90, 90, 180, 3] MERL table (`merl_valid_mask`), at their cell
+    centres.
+
+    `weighting`: "solid_angle" (each sample weighted by its cell's solid angle,
+    `merl_cell_weights`: the weighted mean estimates the mean over hemisphere pairs) or
+    "uniform" (every cell alike, which stresses the densely tabulated highlight).
+    """
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"`weighting` = {weighting!r}, expected one of {WEIGHTINGS}")
+    table = np.asarray(table, np.float64)
+    valid = np.flatnonzero(merl_valid_mask(table, max_theta_deg))
+    if not isinstance(num_samples, (int, np.integer)) or num_samples < 1:
+        raise ValueError(f"`num_samples` = {num_samples!r}, expected an integer ≥ 1")
+    if valid.size == 0:
+        raise ValueError("the MERL table has no valid cells (all negative or beyond max_theta_deg)")
+    rng = np.random.default_rng(seed)
+    cells = np.sort(rng.choice(valid, size=min(num_samples, valid.size), replace=False))
+    idx = np.unravel_index(cells, MERL_SHAPE)
+    wo, wi = merl_directions(*(a[idx] for a in merl_angles()))
+    w = merl_cell_weights()[idx] if weighting == "solid_angle" else np.ones(cells.size)
+    return BRDFSamples(jnp.asarray(wo), jnp.asarray(wi), jnp.asarray(table[idx]),
+                       jnp.asarray(w / w.sum()))
+
+
+def sample_material(material, num_samples, *, max_theta_deg=80.0, seed=0):
+    """A `BRDFSamples` of a material itself at `num_samples` direction pairs drawn
+    uniformly over the hemisphere pairs within `max_theta_deg` of the normal (equal
+    weights): noise-free synthetic data without a table."""
+    rng = np.random.default_rng(seed)
+    cos_max = np.cos(np.deg2rad(max_theta_deg))
+
+    def draw(n):  # uniform on the spherical cap cos θ ∈ (cos_max, 1]
+        z = rng.uniform(cos_max, 1.0, n)
+        phi = rng.uniform(0.0, 2.0 * np.pi, n)
+        r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+        return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+    wo, wi = jnp.asarray(draw(num_samples)), jnp.asarray(draw(num_samples))
+    f = jax.vmap(material.eval)(wo, wi)
+    return BRDFSamples(wo, wi, f, jnp.full((num_samples,), 1.0 / num_samples))
+
+
+def tabulate_merl(material, chunk=1 << 16):
+    """The [90, 90, 180, 3] MERL table of a material, evaluated at the cell centres;
+    cells with a direction at or below the horizon are −1 (MERL's "no data")."""
+    wo, wi = (a.reshape(-1, 3) for a in merl_directions(*merl_angles()))
+    ev = jax.jit(jax.vmap(material.eval))
+    out = np.concatenate([np.asarray(ev(jnp.asarray(wo[s:s + chunk]), jnp.asarray(wi[s:s + chunk])))
+                          for s in range(0, wo.shape[0], chunk)])
+    below = (wo[:, 2] <= 0.0) | (wi[:, 2] <= 0.0)
+    out[below] = -1.0
+    return out.reshape(*MERL_SHAPE, 3)
+
+
+# --------------------------------------------------------------------------- tabulated BRDF
+
+
+def half_diff(wo, wi):
+    """Rusinkiewicz (θh, θd, φd) of one direction pair, in JAX (as
+    `jaxrt.io.half_diff_angles`, φd in (−π, π]); arctan2 forms, so finite everywhere."""
+    wh = wo + wi
+    wh = wh / jnp.sqrt(jnp.maximum(jnp.sum(wh * wh), 1e-30))
+    sin_h = jnp.sqrt(wh[0] ** 2 + wh[1] ** 2)
+    theta_h = jnp.arctan2(sin_h, wh[2])
+    phi_h = jnp.arctan2(wh[1], wh[0])
+    c, s = jnp.cos(phi_h), jnp.sin(phi_h)
+    x = c * wi[0] + s * wi[1]
+    y = -s * wi[0] + c * wi[1]
+    ct, st = jnp.cos(theta_h), jnp.sin(theta_h)
+    x, z = ct * x - st * wi[2], st * x + ct * wi[2]
+    theta_d = jnp.arctan2(jnp.sqrt(x * x + y * y), z)
+    return theta_h, theta_d, jnp.arctan2(y, x)
+
+
+class TabulatedBRDF(Material):
+    """A measured isotropic BRDF as a material: nearest-cell lookup in a MERL table.
+
+        f_r(wo, wi) = table[i, j, k],  i = ⌊sqrt(θh / (π/2)) · 90⌋, j = ⌊θd / (π/2) · 90⌋,
+        k = ⌊(φd mod π) / π · 180⌋   (MERL's BRDFRead.cpp; `jaxrt.io.merl_indices`),
+
+    0 below the horizon and where the table has no data (negative cells). Not
+    differentiable in anything useful (piecewise constant); used to render the
+    reference next to the fitted models.
+
+    `table`: [90, 90, 180, 3] linear RGB f_r (1/sr), e.g. from `jaxrt.io.read_merl`.
+    """
+
+    table: jnp.ndarray
+
+    def __init__(self, table):
+        table = jnp.asarray(table, dtype=float)
+        if table.shape != (*MERL_SHAPE, 3):
+            raise ValueError(f"`TabulatedBRDF(table=...)` has shape {table.shape}, "
+                             f"expected {(*MERL_SHAPE, 3)}")
+        self.table = table
+
+    def eval(self, wo, wi):
+        theta_h, theta_d, phi_d = half_diff(wo, wi)
+        n_h, n_d, n_p = MERL_SHAPE
+        i = jnp.floor(jnp.sqrt(jnp.maximum(theta_h, 0.0) / (jnp.pi / 2)) * n_h)
+        j = jnp.floor(theta_d / (jnp.pi / 2) * n_d)
+        k = jnp.floor(jnp.mod(phi_d, jnp.pi) / jnp.pi * n_p)
+        i, j, k = (jnp.clip(a, 0, n - 1).astype(jnp.int32) for a, n in zip((i, j, k), MERL_SHAPE))
+        f = jnp.maximum(self.table[i, j, k], 0.0)
+        return jnp.where((wo[2] > 0.0) & (wi[2] > 0.0), f, 0.0)
+
+    def base_color(self):
+        return jnp.maximum(self.table[0, 45, 90], 0.0) * jnp.pi
+
+
+# --------------------------------------------------------------------------- models
+
+
+_TRANSFORMS = {
+    "softplus": (jax.nn.softplus, lambda x: x + jnp.log(-jnp.expm1(-x))),
+    "exp": (jnp.exp, jnp.log),
+    "sigmoid": (jax.nn.sigmoid, lambda x: jnp.log(x) - jnp.log1p(-x)),
+    "identity": (lambda u: u, lambda x: x),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Parameter:
+    """A fitted parameter: its `shape` and the `transform` from an unconstrained value,
+    "softplus" (≥ 0), "exp" (> 0), "sigmoid" (in (0, 1)) or "identity"."""
+
+    shape: tuple
+    transform: str
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ModelSpec:
+    """How to fit one model.
+
+    name      the model's name in tables and configs.
+    params    name → `Parameter`, in display order.
+    build     constrained parameter values (dict) → a `jaxrt.bsdf` material.
+    start     (roughness α, diffuse start [3]) → constrained starting values; α is
+              turned into the model's own roughness or exponent.
+    scale     names of the specular-scale parameters (linear in f), rescaled at each
+              start so that the model matches the brightest sample (`starts`).
+    """
+
+    name: str
+    params: dict
+    build: Callable
+    start: Callable
+    scale: tuple = ()
+
+    def to_values(self, raw):
+        """Unconstrained → constrained parameter values."""
+        return {k: _TRANSFORMS[p.transform][0](raw[k]) for k, p in self.params.items()}
+
+    def to_raw(self, values):
+        """Constrained → unconstrained parameter values (clipped into the open range)."""
+        raw = {}
+        for k, p in self.params.items():
+            x = jnp.broadcast_to(jnp.asarray(values[k], dtype=float), p.shape)
+            if p.transform in ("softplus", "exp"):
+                x = jnp.maximum(x, 1e-6)
+            elif p.transform == "sigmoid":
+                x = jnp.clip(x, 1e-6, 1.0 - 1e-6)
+            raw[k] = _TRANSFORMS[p.transform][1](x)
+        return raw
+
+
+def alpha_to_exponent(alpha):
+    """Blinn–Phong exponent of the Beckmann roughness α: 2 α⁻² − 2 (notes)."""
+    return 2.0 / (alpha * alpha) - 2.0
+
+
+_RGB = (3,)
+
+
+def _lambert():
+    return ModelSpec(
+        "lambert", {"kd": Parameter(_RGB, "softplus")},
+        lambda v: bsdf.Lambert(v["kd"]),
+        lambda alpha, kd: {"kd": kd})
+
+
+def _blinn_phong():
+    return ModelSpec(
+        "blinn_phong",
+        {"kd": Parameter(_RGB, "softplus"), "ks": Parameter(_RGB, "softplus"),
+         "q": Parameter((), "exp")},
+        lambda v: bsdf.BlinnPhong(v["kd"], v["ks"], v["q"]),
+        lambda alpha, kd: {"kd": kd, "ks": 0.5, "q": alpha_to_exponent(alpha)},
+        scale=("ks",))
+
+
+def _ward(normalization):
+    return ModelSpec(
+        "ward" if normalization == "ward" else "ward_duer",
+        {"rho_d": Parameter(_RGB, "softplus"), "rho_s": Parameter(_RGB, "softplus"),
+         "alpha": Parameter((), "exp")},
+        lambda v: bsdf.Ward(v["rho_d"], v["rho_s"], v["alpha"], normalization=normalization),
+        lambda alpha, kd: {"rho_d": kd, "rho_s": 0.1, "alpha": alpha},
+        scale=("rho_s",))
+
+
+def _cook_torrance(distribution, geometry):
+    ndf = {"ggx": bsdf.GGX, "beckmann": bsdf.Beckmann}[distribution]
+    return ModelSpec(
+        f"cook_torrance_{distribution}",
+        {"diffuse": Parameter(_RGB, "softplus"), "ks": Parameter(_RGB, "softplus"),
+         "alpha": Parameter((), "exp"), "f0": Parameter((), "sigmoid")},
+        lambda v: bsdf.CookTorrance(ndf(v["alpha"]), bsdf.SchlickFresnel(v["f0"]),
+                                    geometry=geometry, diffuse=v["diffuse"], ks=v["ks"]),
+        lambda alpha, kd: {"diffuse": kd, "ks": 1.0, "alpha": alpha, "f0": F0_START},
+        scale=("ks",))
+
+
+def _lafortune(lobes):
+    def start(alpha, kd):
+        # Lobe j starts 2^j times broader; (wo·r)^n ≈ exp(−n θ²/2) with θ ≈ 2 θh gives
+        # n ≈ q / 4 for the half-vector exponent q.
+        n = jnp.stack([jnp.maximum(alpha_to_exponent(alpha * 2.0**j) / 4.0, 1.0)
+                       for j in range(lobes)])
+        return {"kd": kd, "ks": jnp.ones((lobes, 3)), "cxy": -jnp.ones(lobes), "n": n}
+
+    return ModelSpec(
+        "lafortune",
+        {"kd": Parameter(_RGB, "softplus"), "ks": Parameter((lobes, 3), "softplus"),
+         "cxy": Parameter((lobes,), "identity"), "n": Parameter((lobes,), "exp")},
+        # cz = 1: the scale of (cxy, cz) is redundant with ks (ks [s b]^n = ks s^n b^n),
+        # so it is fixed; cxy is then the lobe's shape (−1: Phong, |cxy| > 1: towards
+        # grazing, > 0: retro-reflection).
+        lambda v: bsdf.Lafortune(v["kd"], v["ks"], v["cxy"], jnp.ones_like(v["cxy"]), v["n"]),
+        start, scale=("ks",))
+
+
+def _ashikhmin_shirley():
+    return ModelSpec(
+        "ashikhmin_shirley",
+        {"rd": Parameter(_RGB, "softplus"), "rs": Parameter(_RGB, "sigmoid"),
+         "n": Parameter((), "exp")},
+        lambda v: bsdf.AshikhminShirley(v["rd"], v["rs"], v["n"]),
+        lambda alpha, kd: {"rd": kd, "rs": F0_START, "n": alpha_to_exponent(alpha)})
+
+
+#: Fittable models: name → factory(**options) → ModelSpec. (He et al. 1991 is not in
+#: `jaxrt.bsdf`, so it is not here.)
+MODELS = {
+    "lambert": _lambert,
+    "blinn_phong": _blinn_phong,
+    "ward": lambda: _ward("ward"),
+    "ward_duer": lambda: _ward("duer"),
+    "cook_torrance_beckmann": lambda geometry="cook_torrance": _cook_torrance("beckmann", geometry),
+    "cook_torrance_ggx": lambda geometry="smith_correlated": _cook_torrance("ggx", geometry),
+    "lafortune": lambda lobes=1: _lafortune(int(lobes)),
+    "ashikhmin_shirley": _ashikhmin_shirley,
+}
+
+
+@functools.lru_cache(maxsize=None)
+def _cached_spec(name, options):
+    return MODELS[name](**dict(options))
+
+
+def model_spec(name, **options):
+    """The `ModelSpec` of a model in `MODELS`, with its options (CookTorrance:
+    `geometry`; Lafortune: `lobes`). The same name and options give the same object, so
+    that its compiled solver (`fit`) is reused."""
+    if name not in MODELS:
+        raise ValueError(f"unknown BRDF model {name!r}, expected one of {sorted(MODELS)}")
+    try:
+        return _cached_spec(name, tuple(sorted(options.items())))
+    except TypeError:
+        raise ValueError(f"model {name!r}: unknown options {sorted(options)}") from None
+
+
+# --------------------------------------------------------------------------- objective
+
+
+def compress(y, compression):
+    """The value compared by the objective: y ("none"), (ε + y)^(1/3) ("cbrt") or
+    log(ε + y) ("log"), y = f cos θi ≥ 0 (ε: `CBRT_EPSILON`, `LOG_EPSILON`)."""
+    if compression == "none":
+        return y
+    if compression == "cbrt":
+        return jnp.cbrt(jnp.maximum(y, 0.0) + CBRT_EPSILON)
+    if compression == "log":
+        return jnp.log(jnp.maximum(y, 0.0) + LOG_EPSILON)
+    raise ValueError(f"`compression` = {compression!r}, expected one of {COMPRESSIONS}")
+
+
+def model_values(material, data):
+    """f_model cos θi at the samples, [N, 3]."""
+    return jax.vmap(material.eval)(data.wo, data.wi) * data.wi[:, 2:3]
+
+
+def residuals(material, data, compression="none"):
+    """r_s,c = sqrt(w_s / 3) (g(f_model cos θi) − g(f cos θi)), [N, 3]; Σ r² is the
+    objective (E² of Ngan et al. for compression "none")."""
+    y_model = model_values(material, data)
+    y_data = data.f * data.wi[:, 2:3]
+    scale = jnp.sqrt(data.weight / 3.0)[:, None]
+    return scale * (compress(y_model, compression) - compress(y_data, compression))
+
+
+def ngan_error(material, data):
+    """E = sqrt(Σ_s w_s Σ_c (f_c cos θi − f_model,c cos θi)² / (3 Σ_s w_s)) (Ngan et al.
+    2005; cosine-weighted RMS difference, 1/sr)."""
+    r = residuals(material, data._replace(weight=data.weight / jnp.sum(data.weight)))
+    return jnp.sqrt(jnp.sum(r * r))
+
+
+class FitResult(NamedTuple):
+    """The best of a model's fits.
+
+    material   the fitted `jaxrt.bsdf` material.
+    values     fitted parameter values (constrained), name → array.
+    objective  Σ r² at the fit (in the compressed space).
+    error      `ngan_error` on the fitting samples.
+    steps      solver steps of the best start.
+    converged  whether the best start's solver reported success.
+    objectives Σ r² of every start (to judge local minima).
+    """
+
+    material: Material
+    values: dict
+    objective: float
+    error: float
+    steps: int
+    converged: bool
+    objectives: np.ndarray
+
+
+def starts(spec, data, alphas):
+    """Constrained starting values, one per roughness in `alphas`, stacked along a new
+    leading axis. The diffuse start is π × the 10th percentile of the data per channel;
+    the specular scale parameters (`spec.scale`) are then set so that the model equals
+    the data at its brightest sample."""
+    f = np.asarray(data.f)
+    kd = jnp.asarray(np.clip(np.pi * np.percentile(f, 10.0, axis=0), 1e-3, 0.95))
+    brightest = int(np.argmax(np.sum(f * np.asarray(data.wi)[:, 2:3], axis=-1)))
+    wo, wi, f_max = data.wo[brightest], data.wi[brightest], data.f[brightest]
+    out = []
+    for alpha in alphas:
+        v = {k: jnp.broadcast_to(jnp.asarray(x, float), spec.params[k].shape)
+             for k, x in spec.start(float(alpha), kd).items()}
+        if spec.scale:
+            unit = spec.build({**v, **{k: jnp.ones_like(v[k]) for k in spec.scale}}).eval(wo, wi)
+            zero = spec.build({**v, **{k: jnp.zeros_like(v[k]) for k in spec.scale}}).eval(wo, wi)
+            lobe = jnp.maximum(unit - zero, 1e-12)
+            s = jnp.clip((f_max - zero) / lobe, 1e-4, 1e4)  # [3]
+            v.update({k: jnp.broadcast_to(s, v[k].shape) for k in spec.scale})
+        out.append(v)
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *out)
+
+
+def fit(spec, data, *, compression="none", solver="levenberg_marquardt", alphas=(0.05, 0.15, 0.4),
+        max_steps=200, rtol=1e-7, atol=1e-10):
+    """Fit `spec`'s parameters to `data` by weighted least squares (module docstring),
+    from one start per roughness in `alphas`; returns the best as a `FitResult`.
+
+    `solver`: "levenberg_marquardt" (`optx.least_squares` with
+    `optx.LevenbergMarquardt(rtol, atol)` on the residual vector) or "bfgs"
+    (`optx.minimise` with `optx.BFGS(rtol, atol)` on Σ r²). Both stop after `max_steps`
+    without raising (`throw=False`); `converged` says whether they met the tolerance.
+    """
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"`compression` = {compression!r}, expected one of {COMPRESSIONS}")
+    if solver not in SOLVERS:
+        raise ValueError(f"`solver` = {solver!r}, expected one of {SOLVERS}")
+    solve = _solver(spec, compression, solver, max_steps, rtol, atol)
+    x0 = starts(spec, data, alphas)
+    results = [solve(spec.to_raw(jax.tree_util.tree_map(lambda x: x[i], x0)), data)
+               for i in range(len(alphas))]
+    losses = np.array([float(r[1]) for r in results])
+    best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
+    raw, _, steps, ok = results[best]
+    values = spec.to_values(raw)
+    material = spec.build(values)
+    return FitResult(material, values, float(losses[best]), float(ngan_error(material, data)),
+                     int(steps), bool(ok), losses)
+
+
+@functools.lru_cache(maxsize=64)
+def _solver(spec, compression, solver, max_steps, rtol, atol):
+    """The compiled solve of one start, `(raw0, data) -> (raw, Σ r², steps, success)`,
+    cached per model and options so that every start and dataset of the same shapes
+    reuses it. (One start at a time: vmapping the starts compiles slower and runs each
+    batch as long as its slowest start.)"""
+
+    def fn(raw, data):
+        return residuals(spec.build(spec.to_values(raw)), data, compression)
+
+    @eqx.filter_jit
+    def solve(raw, data):
+        if solver == "levenberg_marquardt":
+            sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), raw, data,
+                                     max_steps=max_steps, throw=False)
+        else:
+            sol = optx.minimise(lambda y, a: jnp.sum(fn(y, a) ** 2), optx.BFGS(rtol=rtol, atol=atol),
+                                raw, data, max_steps=max_steps, throw=False)
+        loss = jnp.sum(fn(sol.value, data) ** 2)
+        return sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+
+    return solve
