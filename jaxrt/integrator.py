@@ -168,19 +168,56 @@ def ray_tree(scene, settings, spectral=None):
     return RayTree(branches, depth, scene.flags("has_diffuse"), wavelengths)
 
 
-class _Rays(NamedTuple):
-    """One ray (or, with a leading batch axis, one level of the tree)."""
+class Ray(NamedTuple):
+    """One ray of the tree (or, with a leading batch axis, one level of it).
 
-    origin: jnp.ndarray      # [3]
-    direction: jnp.ndarray   # [3] unit
-    cone: jnp.ndarray        # [2] pixel cone (r0, spread)
-    weight: jnp.ndarray      # [C] product of the c_refl/c_trans along the path
-    sigma: jnp.ndarray       # [C] absorption coefficient of the medium it travels in
-    alive: jnp.ndarray       # bool
+    origin [3], direction [3] (unit), cone [2] (pixel cone r0, spread), weight [C]
+    (product of the c_refl/c_trans along the path; C = 3 for RGB, 1 per wavelength),
+    sigma [C] (absorption coefficient of the medium the ray travels in), alive (bool:
+    dead rays stop at their first step and add nothing).
+    """
+
+    origin: jnp.ndarray
+    direction: jnp.ndarray
+    cone: jnp.ndarray
+    weight: jnp.ndarray
+    sigma: jnp.ndarray
+    alive: jnp.ndarray
 
 
-def _shade(scene, settings, tree, colour, wavelength, spawn, ray):
-    """Trace and shade one ray of the tree; returns (radiance [C], children, aovs)."""
+def camera_ray(origin, direction, cone=None, channels=3):
+    """The root `Ray` of a tree: weight 1, outside any medium."""
+    dtype = origin.dtype
+    cone = jnp.zeros(2, dtype) if cone is None else cone
+    return Ray(origin, direction, cone, jnp.ones(channels, dtype), jnp.zeros(channels, dtype),
+               jnp.ones((), bool))
+
+
+class Shaded(NamedTuple):
+    """What `shade_ray` returns for one ray.
+
+    radiance  [C] weight · exp(−σ t) · (direct light at the hit, or background).
+    children  {branch name: Ray} for the branches of the tree ({} at the last level).
+    aovs      {"depth", "normal", "albedo", "steps", "coverage"} of this hit.
+    """
+
+    radiance: jnp.ndarray
+    children: dict
+    aovs: dict
+
+
+def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spawn=True):
+    """Trace one `Ray`, shade its hit and spawn its children (one node of the tree).
+
+    The reflected child starts `spawn_offset` off the surface on the viewer's side
+    along r = 2 (n·wo) n − wo; the refracted child on the far side along
+    `refract(wo, n, eta)`, dead under total internal reflection. Weights: the parent's
+    throughput times the material's c_refl / c_trans (`specular`). `tree`: the static
+    `RayTree` (default `ray_tree(scene, settings)`); `colour`: RGB → render colour
+    (default identity); `wavelength`: nm, for dispersive indices (None: RGB).
+    """
+    tree = ray_tree(scene, settings) if tree is None else tree
+    colour = _rgb if colour is None else colour
     surface = scene.surface
     o, d, cone = ray.origin, ray.direction, ray.cone
     dtype = o.dtype
@@ -197,11 +234,10 @@ def _shade(scene, settings, tree, colour, wavelength, spawn, ray):
     if tree.direct:
         local = direct_lighting(scene, p, n, wo, material, settings, colour, active=found)
     else:
-        local = colour(select([m.ambient().astype(dtype) for m in scene.materials], material))
+        local = colour(select([m.ambient() for m in scene.materials], material))
     radiance = jnp.where(found, local, jnp.where(ray.alive, colour(scene.background), 0.0))
     # Beer–Lambert along the segment (σ = 0 outside any medium).
     throughput = ray.weight * jnp.exp(-ray.sigma * hit.t)
-    out = throughput * radiance
 
     albedo = select([m.base_color() for m in scene.materials], material)
     zero3 = jnp.zeros(3, dtype)
@@ -212,59 +248,67 @@ def _shade(scene, settings, tree, colour, wavelength, spawn, ray):
         "steps": hit.steps.astype(dtype),
         "coverage": found.astype(dtype),
     }
-    if not spawn:
-        return out, (), aovs
+    children = {}
+    if spawn and tree.branches:
+        children = _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p,
+                          n_out, n, entering, material, throughput)
+    return Shaded(throughput * radiance, children, aovs)
 
-    specular = lambda m: m.has_reflection or m.has_transmission  # noqa: E731
+
+def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out, n, entering,
+           material, throughput):
+    dtype = p.dtype
+    wo = -ray.direction
     zeros = jnp.zeros(3, dtype)
+    specular = lambda m: m.has_reflection or m.has_transmission  # noqa: E731
     c_refl, c_trans, eta = _select_material(
         scene.materials, specular, lambda m: m.specular(dot(n_out, wo), wavelength),
         (zeros, zeros, jnp.ones((), dtype)), material)
-    eps = hit_epsilon(settings, hit.t, cone)
-    offset = spawn_offset(p, settings, eps)
-    child_cone = jnp.stack([cone[0] + cone[1] * hit.t, cone[1]])
-    children = []
-    for branch in tree.branches:
-        if branch == "reflect":
-            spawns = _select_material(scene.materials, lambda m: m.has_reflection,
-                                      lambda m: jnp.ones((), bool), jnp.zeros((), bool), material)
-            children.append(_Rays(p + offset * n, reflect(wo, n), child_cone,
-                                  throughput * colour(c_refl), ray.sigma, found & spawns))
-        else:
-            spawns = _select_material(scene.materials, lambda m: m.has_transmission,
-                                      lambda m: jnp.ones((), bool), jnp.zeros((), bool), material)
-            wt, valid = refract(wo, n_out, eta)
-            inside = _select_material(scene.materials, lambda m: m.has_transmission,
-                                      lambda m: getattr(m, "absorption", zeros), zeros, material)
-            sigma = jnp.where(entering, colour(inside), 0.0)
-            weight = jnp.where(valid, throughput * colour(c_trans), 0.0)
-            children.append(_Rays(p - offset * n, wt, child_cone, weight, sigma,
-                                  found & spawns & valid))
-    return out, tuple(children), aovs
+    offset = spawn_offset(p, settings, hit_epsilon(settings, hit.t, ray.cone))
+    cone = jnp.stack([ray.cone[0] + ray.cone[1] * hit.t, ray.cone[1]])
+    yes, no = jnp.ones((), bool), jnp.zeros((), bool)
+    children = {}
+    if "reflect" in tree.branches:
+        spawns = _select_material(scene.materials, lambda m: m.has_reflection,
+                                  lambda m: yes, no, material)
+        children["reflect"] = Ray(p + offset * n, reflect(wo, n), cone,
+                                  throughput * colour(c_refl), ray.sigma, found & spawns)
+    if "transmit" in tree.branches:
+        spawns = _select_material(scene.materials, lambda m: m.has_transmission,
+                                  lambda m: yes, no, material)
+        wt, valid = refract(wo, n_out, eta)
+        inside = _select_material(scene.materials, lambda m: m.has_transmission,
+                                  lambda m: getattr(m, "absorption", zeros), zeros, material)
+        # Entering: the medium of the material; leaving: vacuum.
+        sigma = jnp.where(entering, colour(inside), 0.0)
+        weight = jnp.where(valid, throughput * colour(c_trans), 0.0)
+        children["transmit"] = Ray(p - offset * n, wt, cone, weight, sigma,
+                                   found & spawns & valid)
+    return children
 
 
 def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):
-    """Radiance [channels] of one camera ray and the AOVs of its first hit."""
-    dtype = origin.dtype
-    rays = _Rays(origin[None], direction[None], cone[None], jnp.ones((1, channels), dtype),
-                 jnp.zeros((1, channels), dtype), jnp.ones((1,), bool))
-    total = jnp.zeros(channels, dtype)
+    """Radiance added by each level [depth + 1, channels] of one camera ray's tree, and
+    the AOVs of its first hit."""
+    rays = jax.tree_util.tree_map(lambda x: x[None], camera_ray(origin, direction, cone, channels))
+    levels = []
     aovs = None
     for level in range(tree.depth + 1):
         spawn = level < tree.depth
 
         def shade(ray, spawn=spawn):
-            return _shade(scene, settings, tree, colour, wavelength, spawn, ray)
+            return shade_ray(scene, ray, settings, tree, colour, wavelength, spawn)
 
-        out, children, level_aovs = jax.vmap(shade)(rays)
-        total = total + jnp.sum(out, axis=0)
+        out = jax.vmap(shade)(rays)
+        levels.append(jnp.sum(out.radiance, axis=0))
         if level == 0:
-            aovs = jax.tree_util.tree_map(lambda x: x[0], level_aovs)
+            aovs = jax.tree_util.tree_map(lambda x: x[0], out.aovs)
         if spawn:
             # [B, b, ...] -> [B·b, ...]: the children of ray i are rays b·i … b·i + b − 1.
+            children = [out.children[name] for name in tree.branches]
             rays = jax.tree_util.tree_map(
                 lambda *xs: jnp.stack(xs, axis=1).reshape((-1,) + xs[0].shape[1:]), *children)
-    return total, aovs
+    return jnp.stack(levels), aovs
 
 
 def trace_radiance(scene, origin, direction, cone, settings, spectral=None):
@@ -275,12 +319,21 @@ def trace_radiance(scene, origin, direction, cone, settings, spectral=None):
     coverage (1 on a hit, 0 on a miss). The AOVs are those of the first hit.
     `spectral`: None (spectral only for dispersive scenes), True or False (forced).
     """
+    levels, aovs = trace_levels(scene, origin, direction, cone, settings, spectral)
+    return {"rgb": jnp.sum(levels, axis=0), **aovs}
+
+
+def trace_levels(scene, origin, direction, cone, settings, spectral=None):
+    """Linear RGB added by each level of the ray tree, [depth + 1, 3], and the AOVs.
+
+    Level k holds the rays after k specular bounces; the render at max_depth = d is
+    the sum of the first d + 1 levels of any deeper tree (shading a level does not
+    depend on how deep the tree goes).
+    """
     tree = ray_tree(scene, settings, spectral)
     if tree.wavelengths == 0:
-        rgb, aovs = _trace_tree(scene, origin, direction, cone, settings, tree, _rgb, 3, None)
-    else:
-        rgb, aovs = _trace_spectral(scene, origin, direction, cone, settings, tree)
-    return {"rgb": rgb, **aovs}
+        return _trace_tree(scene, origin, direction, cone, settings, tree, _rgb, 3, None)
+    return _trace_spectral(scene, origin, direction, cone, settings, tree)
 
 
 def _trace_spectral(scene, origin, direction, cone, settings, tree):
@@ -308,9 +361,10 @@ def _trace_spectral(scene, origin, direction, cone, settings, tree):
 
         return _trace_tree(scene, origin, direction, cone, settings, tree, colour, 1, lam)
 
-    values, aovs = jax.vmap(one)(lambdas)
-    rgb = spectral.spectrum_to_rgb(values[:, 0], lambdas)
-    return rgb, jax.tree_util.tree_map(lambda x: x[0], aovs)
+    values, aovs = jax.vmap(one)(lambdas)  # [N, depth + 1, 1]
+    to_rgb = spectral.spectral_rgb_matrix(lambdas).astype(dtype)  # [3, N]
+    levels = values[..., 0].T @ to_rgb.T  # [depth + 1, 3]
+    return levels, jax.tree_util.tree_map(lambda x: x[0], aovs)
 
 
 def _ray_hash(origin, direction):
