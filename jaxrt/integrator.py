@@ -91,7 +91,7 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
         f = select([m.eval(wo_local, wi_local) for m in diffuse] + [jnp.zeros(3, p.dtype)], index)
         lit = active & (cos_i > 0.0)
         dist = jnp.where(lit, dist, 0.0)
-        visible = shadow_ray(scene.surface, origin, wi, dist, settings)
+        visible = visibility(scene, origin, wi, dist, settings)
         radiance = radiance + jnp.where(lit, colour(f) * colour(irradiance) * cos_i * visible, 0.0)
     return radiance
 
@@ -122,6 +122,60 @@ def _select_material(materials, predicate, fn, default, material):
     values = chosen + [default]
     index = _index_table(materials, predicate, material)
     return jax.tree_util.tree_map(lambda *xs: select(list(xs), index), *values)
+
+
+class SceneHit(NamedTuple):
+    """The nearest hit of a ray in a scene (`intersect_scene`).
+
+    t         distance to the hit (t_max on a miss); differentiable where it hits.
+    hit       the ray hit the SDF surface or a height field.
+    steps     marching steps of the sphere tracer plus those of every height field.
+    normal    [3] unit outward normal at the hit (SDF gradient, or the height field's
+              (−∂h/∂x, 1, −∂h/∂z) normal, pointing up).
+    material  index of the material hit (int32).
+    """
+
+    t: jnp.ndarray
+    hit: jnp.ndarray
+    steps: jnp.ndarray
+    normal: jnp.ndarray
+    material: jnp.ndarray
+
+
+def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
+    """intersectScene of the notes: the nearest of the sphere-traced SDF `surface` and
+    of every height field (marched by `HeightField.intersect`). One ray."""
+    surface = scene.surface
+    hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max)
+    t, found, steps = hit.t, hit.hit, hit.steps
+    p = origin + t * direction
+    normal = surface_normal(surface, p, settings)
+    material = surface.eval(jax.lax.stop_gradient(p))[1]
+    for field in scene.heightfields:
+        h = field.intersect(origin, direction, settings, cone=cone, t_max=t_max)
+        nearer = h.hit & ((~found) | (h.t < t))
+        t = jnp.where(nearer, h.t, t)
+        normal = jnp.where(nearer, field.normal(origin + h.t * direction), normal)
+        material = jnp.where(nearer, field.material, material)
+        found = found | h.hit
+        steps = steps + h.steps
+    material = jnp.clip(material, 0, len(scene.materials) - 1)
+    return SceneHit(t, found, steps, normal, material)
+
+
+def visibility(scene, origin, wi, distance, settings):
+    """Visibility in [0, 1] of a light at `distance` along `wi`: `lights.shadow_ray`
+    against the SDF surface (hard, soft or none), times 0/1 for each height field that
+    the shadow ray crosses first (height fields cast hard shadows)."""
+    visible = shadow_ray(scene.surface, origin, wi, distance, settings)
+    if settings.shadows == "none" or not scene.heightfields:
+        return visible
+    t_max = jnp.minimum(distance, settings.shadow_max_distance or settings.max_distance)
+    quick = settings.replace(newton_steps=0)
+    for field in scene.heightfields:
+        blocked = field.intersect(origin, wi, quick, t_max=t_max).hit
+        visible = jnp.where(blocked, 0.0, visible)
+    return visible
 
 
 # -- the static ray tree ------------------------------------------------------------
@@ -218,17 +272,15 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
     """
     tree = ray_tree(scene, settings) if tree is None else tree
     colour = _rgb if colour is None else colour
-    surface = scene.surface
     o, d, cone = ray.origin, ray.direction, ray.cone
     dtype = o.dtype
     t_max = jnp.where(ray.alive, jnp.asarray(settings.max_distance, dtype), 0.0)
-    hit = sphere_trace(surface, o, d, settings, cone=cone, t_max=t_max)
+    hit = intersect_scene(scene, o, d, settings, cone=cone, t_max=t_max)
     found = hit.hit & ray.alive
     p = o + hit.t * d
-    n_out = surface_normal(surface, p, settings)
+    n_out, material = hit.normal, hit.material
     entering = dot(n_out, d) <= 0.0  # the ray arrives from outside
     n = jnp.where(entering, n_out, -n_out)  # faces the viewer
-    material = jnp.clip(surface.eval(jax.lax.stop_gradient(p))[1], 0, len(scene.materials) - 1)
     wo = -d
 
     if tree.direct:
