@@ -231,6 +231,26 @@ class TabulatedBRDF(Material):
         return jnp.maximum(self.table[0, 45, 90], 0.0) * jnp.pi
 
 
+class SumBRDF(Material):
+    """The sum of several materials' BRDFs, f_r = Σ_j f_j(wo, wi): a multi-lobe
+    reference (for example a diffuse base plus a sharp and a hazy specular lobe, as
+    many MERL materials look). Plausible when each term is and their albedos sum to
+    ≤ 1. Parameters: those of the terms."""
+
+    terms: tuple
+
+    def __init__(self, *terms):
+        if not terms or not all(isinstance(t, Material) for t in terms):
+            raise TypeError("`SumBRDF(*terms)` needs one or more jaxrt.bsdf materials")
+        self.terms = tuple(terms)
+
+    def eval(self, wo, wi):
+        return sum(t.eval(wo, wi) for t in self.terms)
+
+    def base_color(self):
+        return self.terms[0].base_color()
+
+
 # --------------------------------------------------------------------------- models
 
 
@@ -453,21 +473,24 @@ class FitResult(NamedTuple):
 def starts(spec, data, alphas):
     """Constrained starting values, one per roughness in `alphas`, stacked along a new
     leading axis. The diffuse start is π × the 10th percentile of the data per channel;
-    the specular scale parameters (`spec.scale`) are then set so that the model equals
-    the data at its brightest sample."""
+    the specular scale parameters (`spec.scale`, linear in f) are then set to their
+    weighted least-squares value for that lobe shape, per channel:
+    s = Σ w ℓ (y − y₀) / Σ w ℓ², with y₀ the model without the lobe and ℓ the lobe at
+    unit scale (both times cos θi), clipped to [1e-4, 1e4]."""
     f = np.asarray(data.f)
     kd = jnp.asarray(np.clip(np.pi * np.percentile(f, 10.0, axis=0), 1e-3, 0.95))
-    brightest = int(np.argmax(np.sum(f * np.asarray(data.wi)[:, 2:3], axis=-1)))
-    wo, wi, f_max = data.wo[brightest], data.wi[brightest], data.f[brightest]
+    y = data.f * data.wi[:, 2:3]
+    w = data.weight[:, None]
     out = []
     for alpha in alphas:
         v = {k: jnp.broadcast_to(jnp.asarray(x, float), spec.params[k].shape)
              for k, x in spec.start(float(alpha), kd).items()}
         if spec.scale:
-            unit = spec.build({**v, **{k: jnp.ones_like(v[k]) for k in spec.scale}}).eval(wo, wi)
-            zero = spec.build({**v, **{k: jnp.zeros_like(v[k]) for k in spec.scale}}).eval(wo, wi)
-            lobe = jnp.maximum(unit - zero, 1e-12)
-            s = jnp.clip((f_max - zero) / lobe, 1e-4, 1e4)  # [3]
+            y0 = model_values(spec.build({**v, **{k: jnp.zeros_like(v[k]) for k in spec.scale}}), data)
+            y1 = model_values(spec.build({**v, **{k: jnp.ones_like(v[k]) for k in spec.scale}}), data)
+            lobe = y1 - y0
+            s = jnp.sum(w * lobe * (y - y0), axis=0) / jnp.maximum(jnp.sum(w * lobe * lobe, axis=0), 1e-30)
+            s = jnp.clip(s, 1e-4, 1e4)  # [3]
             v.update({k: jnp.broadcast_to(s, v[k].shape) for k in spec.scale})
         out.append(v)
     return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *out)
