@@ -14,11 +14,32 @@ marched t̂ (held constant),
 
 has the value of a polished root and, because t̂ and ∇f·d carry no gradient, exactly the
 derivative dt*/dθ = −(∂f/∂θ + ∇f · ∂(o + t d)/∂θ) / (∇f · d) of the design notes.
+`settings.newton_steps` such steps are taken; the gradient is that of the last one, so
+it is evaluated at the second-to-last iterate.
+
+`settings.root_solver = "optimistix"` polishes instead with `optimistix.root_find`
+(Newton from t̂, `ImplicitAdjoint`, `max_steps = newton_steps`, `throw=False`), whose
+gradient is the implicit-function derivative at the final iterate. The two agree to
+O(|t_k − t_{k−1}|) (the last Newton correction): to ~1e-12 in float64 at
+newton_steps ≥ 2, to ~hit_epsilon·curvature at newton_steps = 1 (tests/test_gradients).
+The hand-written rule is the default: it needs one SDF gradient per step and compiles
+to a few lines.
+
+Grazing hits (|∇f·d| ≤ GRAZING_COSINE·|∇f|) are not polished: t keeps the marched value
+with a zero gradient, instead of dividing by ~0.
+
+Closest approach (for silhouettes, `jaxrt.silhouette`): the tracer records the near
+misses of the ray, the samples after which the cone-relative distance f/r(t) starts to
+grow again (local minima along the march; r(t) = cone[0] + cone[1]·t, the pixel-cone
+radius), and keeps the smallest, with its bracket (the samples before and after it). The
+final approach to a hit is not a near miss (the ratio falls to ~0 there), so a ray that
+hits the floor just behind a sphere still reports its near miss of the sphere.
 """
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optimistix as optx
 
 from .vecmath import dot, normalize, safe_div, safe_sqrt
 
@@ -36,8 +57,13 @@ class Hit(eqx.Module):
     inside     the ray started inside a surface (f(origin) < 0).
     exhausted  the budget ran out before the ray hit or left the scene.
     closest_t, closest_d
-               the point of closest approach relative to the pixel cone: the marched
-               sample that minimised f / r(t) (r(t) the cone radius), and f there.
+               the nearest near miss relative to the pixel cone: the marched sample
+               with the smallest f / r(t) among those after which f / r grows again
+               (and the last sample of a ray that did not hit), and f there; r(t) the
+               cone radius. closest_t = 0 where there was none (or with a zero cone).
+    closest_bracket
+               [2] the marched samples before and after closest_t: the minimum of
+               f / r along the ray near the near miss lies between them.
     """
 
     t: jnp.ndarray
@@ -47,6 +73,7 @@ class Hit(eqx.Module):
     exhausted: jnp.ndarray
     closest_t: jnp.ndarray
     closest_d: jnp.ndarray
+    closest_bracket: jnp.ndarray | None = None
 
 
 def hit_epsilon(settings, t, cone):
@@ -62,7 +89,7 @@ def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None):
         `lipschitz()`).
       origin, direction: [3] arrays; `direction` must be unit length.
       settings: `RenderSettings` (max_steps, hit_epsilon, pixel_epsilon, max_distance,
-        over_relaxation, newton_steps).
+        over_relaxation, newton_steps, root_solver).
       cone: (r0, spread) of the pixel cone, r(t) = r0 + spread · t (default: a cone of
         zero width, so the pixel epsilon is inactive).
       t_max: stop at this distance instead of settings.max_distance (shadow rays).
@@ -73,14 +100,39 @@ def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None):
     if cone is None:
         cone = jnp.zeros(2, origin.dtype)
     t_max = settings.max_distance if t_max is None else t_max
-    t, hit, steps, inside, exhausted, ct, cd = _march(
-        stop_gradient(sdf), stop_gradient(origin), stop_gradient(direction), settings,
-        stop_gradient(cone), stop_gradient(t_max),
-    )
+    m = _march(stop_gradient(sdf), stop_gradient(origin), stop_gradient(direction), settings,
+               stop_gradient(cone), stop_gradient(t_max))
+    t = polish_root(sdf, origin, direction, m["t"], m["hit"], settings)
+    return Hit(t=t, hit=m["hit"], steps=m["steps"], inside=m["inside"],
+               exhausted=m["exhausted"], closest_t=m["closest_t"], closest_d=m["closest_d"],
+               closest_bracket=m["closest_bracket"])
+
+
+def polish_root(sdf, origin, direction, t, hit, settings):
+    """Polish the marched root t̂ of g(t) = f(o + t d) where `hit`, with implicit gradients.
+
+    `settings.newton_steps` Newton steps by the rule of `settings.root_solver`:
+    "newton" (`newton_step`, the default) or "optimistix" (`optimistix.root_find`).
+    Where not `hit`, and at grazing hits, t̂ is returned with a zero gradient.
+
+    Newton steps after the first are kept only while they contract,
+    |Δt_k| ≤ |Δt_{k−1}| / 2 (quadratic convergence has set in): a ray that passes
+    within ε of a surface without crossing it has a slope ≈ 0 at its closest approach,
+    where an unguarded second step would jump arbitrarily far along the ray.
+    """
+    if settings.newton_steps == 0:
+        return t
+    if settings.root_solver == "optimistix":
+        return _polish_optimistix(sdf, origin, direction, t, hit, settings.newton_steps)
+    ok, last = hit, None
     for _ in range(settings.newton_steps):
-        t = jnp.where(hit, newton_step(sdf, origin, direction, t), t)
-    return Hit(t=t, hit=hit, steps=steps, inside=inside, exhausted=exhausted,
-               closest_t=ct, closest_d=cd)
+        t_new = newton_step(sdf, origin, direction, t)
+        delta = jnp.abs(jax.lax.stop_gradient(t_new - t))
+        if last is not None:
+            ok = ok & (delta <= 0.5 * last)
+        t = jnp.where(ok, t_new, t)
+        last = delta
+    return t
 
 
 def newton_step(sdf, origin, direction, t):
@@ -91,10 +143,39 @@ def newton_step(sdf, origin, direction, t):
     """
     t0 = jax.lax.stop_gradient(t)
     f, grad = jax.value_and_grad(lambda q: sdf(q))(origin + t0 * direction)
+    slope, ok = _slope(grad, direction)
+    return jnp.where(ok, t0 - safe_div(f, jnp.where(ok, slope, 1.0)), t0)
+
+
+def _slope(grad, direction):
+    """(∇f·d, not grazing), both without gradient."""
     grad = jax.lax.stop_gradient(grad)
     slope = dot(grad, jax.lax.stop_gradient(direction))
-    ok = jnp.abs(slope) > GRAZING_COSINE * jnp.sqrt(dot(grad, grad))
-    return jnp.where(ok, t0 - safe_div(f, jnp.where(ok, slope, 1.0)), t0)
+    return slope, jnp.abs(slope) > GRAZING_COSINE * jnp.sqrt(dot(grad, grad))
+
+
+def _polish_optimistix(sdf, origin, direction, t, hit, steps):
+    """`optimistix.root_find` (Newton, ImplicitAdjoint, `steps` steps, throw=False) from t̂.
+
+    Rays that missed or graze are given the root problem y − t̂ = 0 instead (slope 1,
+    no dependence on the scene), the double-`where` guard: their t keeps t̂ with a zero
+    gradient, and the implicit adjoint never divides by a slope near 0.
+    """
+    t0 = jax.lax.stop_gradient(t)
+    grad = jax.grad(lambda q: sdf(q))(stop_gradient(origin) + t0 * stop_gradient(direction))
+    _, ok = _slope(grad, direction)
+    ok = ok & hit
+
+    def g(y, args):
+        sdf_, o, d = args
+        return jnp.where(ok, sdf_(o + y * d), y - t0)
+
+    # Tolerances at rounding level: the step budget, not convergence, ends the polish.
+    tol = 4.0 * float(jnp.finfo(t0.dtype).eps)
+    solution = optx.root_find(g, optx.Newton(rtol=tol, atol=tol), t0,
+                              args=(sdf, origin, direction), max_steps=steps,
+                              adjoint=optx.ImplicitAdjoint(), throw=False)
+    return jnp.where(ok, solution.value, t0)
 
 
 def stop_gradient(tree):
@@ -105,56 +186,90 @@ def stop_gradient(tree):
 
 
 def _march(sdf, origin, direction, settings, cone, t_max):
+    """The bounded sphere-tracing loop (no gradient). Returns a dict of `Hit` fields."""
     dtype = origin.dtype
     lipschitz = sdf.lipschitz().astype(dtype)
     omega0 = jnp.asarray(settings.over_relaxation, dtype)
     start = sdf(origin)
     sign = jnp.where(start < 0.0, -1.0, 1.0).astype(dtype)
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    zero = jnp.zeros((), dtype)
 
     def radius_at(t):
         return sign * sdf(origin + t * direction) / lipschitz
 
-    # state: t, r(t), t_prev, r_prev, omega, steps, done, hit, best_ratio, best_t, best_d
+    def ratio_at(t, r):
+        # f / r(t): distance in pixel-cone radii (big where the cone has no width).
+        return safe_div(r, cone[0] + cone[1] * t, big)
+
     r0 = sign * start / lipschitz
-    init = (jnp.zeros((), dtype), r0, jnp.zeros((), dtype), r0, omega0,
-            jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool),
-            big, jnp.zeros((), dtype), r0)
+    # t, r: the current sample (r = |f|/L there); t_prev, r_prev: the previous accepted
+    # sample (over-relaxation); last_*: the previous accepted sample for the near-miss
+    # search, last_lo the sample before it; best_*: the nearest near miss so far.
+    init = dict(t=zero, r=r0, t_prev=zero, r_prev=r0, omega=omega0,
+                steps=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool),
+                hit=jnp.zeros((), bool), last=big, last_t=zero, last_r=r0, last_lo=zero,
+                best=big, best_t=zero, best_r=r0, best_lo=zero, best_hi=zero)
 
     def cond(s):
-        return (~s[6]) & (s[5] < settings.max_steps)
+        return (~s["done"]) & (s["steps"] < settings.max_steps)
 
     def body(s):
-        t, r, t_prev, r_prev, omega, steps, done, hit, best, best_t, best_d = s
+        t, r, t_prev, r_prev, omega = s["t"], s["r"], s["t_prev"], s["r_prev"], s["omega"]
         eps = hit_epsilon(settings, t, cone)
         # Over-relaxation fall-back (Keinert et al. 2014): if the unbounding spheres of
         # the previous and current samples do not overlap, the long step may have
         # skipped a surface: return to the safe step from the previous sample.
-        fail = (omega > 1.0) & (r + r_prev < t - t_prev) & (steps > 0)
+        fail = (omega > 1.0) & (r + r_prev < t - t_prev) & (s["steps"] > 0)
         is_hit = (~fail) & (r < eps)
-        ratio = safe_div(r, cone[0] + cone[1] * t, big)
-        better = (~fail) & (ratio < best)
-        best, best_t, best_d = (jnp.where(better, ratio, best), jnp.where(better, t, best_t),
-                                jnp.where(better, r, best_d))
+        # Near misses: when f/r grows again, the previous sample was a local minimum.
+        ratio = ratio_at(t, r)
+        rising = (~fail) & (ratio > s["last"])
+        better = rising & (s["last"] < s["best"])
+        new = dict(s)
+        new["best"] = jnp.where(better, s["last"], s["best"])
+        new["best_t"] = jnp.where(better, s["last_t"], s["best_t"])
+        new["best_r"] = jnp.where(better, s["last_r"], s["best_r"])
+        new["best_lo"] = jnp.where(better, s["last_lo"], s["best_lo"])
+        new["best_hi"] = jnp.where(better, t, s["best_hi"])
+        new["last"] = jnp.where(fail, s["last"], ratio)
+        new["last_t"] = jnp.where(fail, s["last_t"], t)
+        new["last_r"] = jnp.where(fail, s["last_r"], r)
+        new["last_lo"] = jnp.where(fail, s["last_lo"], s["last_t"])
         t_next = jnp.where(fail, t_prev + r_prev, t + omega * r)
         r_next_prev = jnp.where(fail, r_prev, r)
         t_next_prev = jnp.where(fail, t_prev, t)
-        omega = jnp.where(fail, 1.0, omega).astype(dtype)
+        new["omega"] = jnp.where(fail, 1.0, omega).astype(dtype)
         escaped = (~is_hit) & (t_next > t_max)
         done = is_hit | escaped
-        t_new = jnp.where(done, t, t_next)
-        r_new = jnp.where(done, r, radius_at(jnp.minimum(t_new, t_max)))
-        return (t_new, r_new, jnp.where(done, t_prev, t_next_prev),
-                jnp.where(done, r_prev, r_next_prev), omega, steps + 1, done, is_hit,
-                best, best_t, best_d)
+        new["t"] = jnp.where(done, t, t_next)
+        new["r"] = jnp.where(done, r, radius_at(jnp.minimum(new["t"], t_max)))
+        new["t_prev"] = jnp.where(done, t_prev, t_next_prev)
+        new["r_prev"] = jnp.where(done, r_prev, r_next_prev)
+        new["steps"] = s["steps"] + 1
+        new["done"] = done
+        new["hit"] = is_hit
+        return new
 
     s = jax.lax.while_loop(cond, body, init)
-    t, r, _, _, _, steps, done, hit, _, best_t, best_d = s
+    t, r, done = s["t"], s["r"], s["done"]
     # A ray whose budget ran out while already within epsilon still counts as a hit.
-    hit = hit | ((~done) & (r < hit_epsilon(settings, t, cone)))
+    hit = s["hit"] | ((~done) & (r < hit_epsilon(settings, t, cone)))
     exhausted = (~done) & (~hit)
-    t = jnp.where(hit, t, jnp.asarray(t_max, dtype))
-    return t, hit, steps, start < 0.0, exhausted, best_t, best_d * lipschitz * sign
+    # A ray that did not hit ends with a near miss: the smaller of its last two samples
+    # (a budget that ran out leaves one sample that the loop did not examine).
+    final = ratio_at(t, r)
+    use_final = (~hit) & (~done) & (final < s["last"]) & (final < s["best"])
+    use_last = (~hit) & (~use_final) & (s["last"] < s["best"])
+    best_t = jnp.where(use_final, t, jnp.where(use_last, s["last_t"], s["best_t"]))
+    best_r = jnp.where(use_final, r, jnp.where(use_last, s["last_r"], s["best_r"]))
+    lo = jnp.where(use_final, s["last_t"], jnp.where(use_last, s["last_lo"], s["best_lo"]))
+    hi = jnp.where(use_final, t, jnp.where(use_last, t, s["best_hi"]))
+    return dict(
+        t=jnp.where(hit, t, jnp.asarray(t_max, dtype)), hit=hit, steps=s["steps"],
+        inside=start < 0.0, exhausted=exhausted, closest_t=best_t,
+        closest_d=best_r * lipschitz * sign, closest_bracket=jnp.stack([lo, hi]),
+    )
 
 
 def surface_normal(sdf, p, settings):
