@@ -58,7 +58,7 @@ def _check_frame(name, eye, target, up, width, height):
     for label, n in (("width", width), ("height", height)):
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
             raise ValueError(f"`{name}({label}=...)` must be an integer ≥ 1, got {n!r}")
-    if isinstance(eye, jax.core.Tracer) or isinstance(target, jax.core.Tracer):
+    if any(isinstance(a, jax.core.Tracer) for a in (eye, target, up)):
         return
     e, t, u = (np.asarray(a, dtype=float) for a in (eye, target, up))
     if np.linalg.norm(t - e) == 0.0:
@@ -77,13 +77,13 @@ class PerspectiveCamera(_Camera):
 
     def __init__(self, eye=(0.0, 0.0, -5.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
                  fov=40.0, width=320, height=240):
-        _check_frame("PerspectiveCamera", eye, target, up, width, height)
-        if not isinstance(fov, jax.core.Tracer) and not (0.0 < float(fov) < 180.0):
-            raise ValueError(f"`PerspectiveCamera(fov=...)` must be in (0, 180) degrees, got {fov}")
         self.eye = as_float(eye, (3,), "PerspectiveCamera(eye=...)")
         self.target = as_float(target, (3,), "PerspectiveCamera(target=...)")
         self.up = as_float(up, (3,), "PerspectiveCamera(up=...)")
         self.fov = as_float(fov, (), "PerspectiveCamera(fov=...)")
+        _check_frame("PerspectiveCamera", self.eye, self.target, self.up, width, height)
+        if not isinstance(self.fov, jax.core.Tracer) and not (0.0 < float(self.fov) < 180.0):
+            raise ValueError(f"`PerspectiveCamera(fov=...)` must be in (0, 180) degrees, got {fov}")
         self.width, self.height = int(width), int(height)
 
     def generate_ray(self, px, py):
@@ -110,13 +110,13 @@ class OrthographicCamera(_Camera):
 
     def __init__(self, eye=(0.0, 0.0, -5.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
                  size=1.0, width=320, height=240):
-        _check_frame("OrthographicCamera", eye, target, up, width, height)
-        if not isinstance(size, jax.core.Tracer) and not float(size) > 0.0:
-            raise ValueError(f"`OrthographicCamera(size=...)` must be > 0, got {size}")
         self.eye = as_float(eye, (3,), "OrthographicCamera(eye=...)")
         self.target = as_float(target, (3,), "OrthographicCamera(target=...)")
         self.up = as_float(up, (3,), "OrthographicCamera(up=...)")
         self.size = as_float(size, (), "OrthographicCamera(size=...)")
+        _check_frame("OrthographicCamera", self.eye, self.target, self.up, width, height)
+        if not isinstance(self.size, jax.core.Tracer) and not float(self.size) > 0.0:
+            raise ValueError(f"`OrthographicCamera(size=...)` must be > 0, got {size}")
         self.width, self.height = int(width), int(height)
 
     def generate_ray(self, px, py):
