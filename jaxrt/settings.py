@@ -26,7 +26,9 @@ class RenderSettings:
                        sphere tracing; 1.2–1.8 take longer steps with a safe fall-back).
       newton_steps     Newton polishing steps at a hit (they also carry the implicit-
                        function gradient of the hit point; at least 1 when gradients
-                       are wanted).
+                       are wanted). The second step makes near-grazing hits accurate:
+                       one step leaves an error ~ ε²/cos³ (cos between ray and
+                       normal), 1.7e-4 relative at 0.8° from tangent in float32.
       root_solver      how the hit is polished and differentiated: "newton" (a
                        hand-written Newton step whose slope is held constant, default)
                        or "optimistix" (`optimistix.root_find`, Newton with
@@ -90,7 +92,7 @@ class RenderSettings:
     pixel_epsilon: float = 0.0
     max_distance: float = 100.0
     over_relaxation: float = 1.0
-    newton_steps: int = 1
+    newton_steps: int = 2
     normal_mode: str = "autodiff"
     normal_epsilon: float = 1e-4
     shadows: str = "hard"
