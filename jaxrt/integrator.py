@@ -286,7 +286,7 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
     if tree.direct:
         local = direct_lighting(scene, p, n, wo, material, settings, colour, active=found)
     else:
-        local = colour(select([m.ambient() for m in scene.materials], material))
+        local = colour(select([m.ambient().astype(dtype) for m in scene.materials], material))
     radiance = jnp.where(found, local, jnp.where(ray.alive, colour(scene.background), 0.0))
     # Beer–Lambert along the segment (σ = 0 outside any medium).
     throughput = ray.weight * jnp.exp(-ray.sigma * hit.t)
