@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..vecmath import dot, safe_div, safe_norm, safe_sqrt
+from ..vecmath import TINY, dot, safe_div, safe_norm, safe_sqrt
 from .base import Primitive, as_float, check, material_index, non_negative, positive
 
 
@@ -26,10 +26,21 @@ def sd_plane(p, normal, offset):
     return dot(p, normal) - offset
 
 
+def _outside_norm(q):
+    """|max(q, 0)|, the outside part of a box-like distance, with the right gradient
+    just outside a face: where |max(q, 0)|² is below `safe_norm`'s threshold (a point
+    within ~1e-15 of a face, as Newton-polished hits are) the norm is taken as the
+    largest component, whose gradient is the face normal (`safe_norm` would give 0).
+    """
+    outside = jnp.maximum(q, 0.0)
+    tiny = dot(outside, outside) <= TINY
+    return jnp.where(tiny, jnp.max(outside), safe_norm(outside))
+
+
 def sd_box(p, half_extents):
     """Exact: signed distance to an axis-aligned box centred at the origin."""
     q = jnp.abs(p) - half_extents
-    return safe_norm(jnp.maximum(q, 0.0)) + jnp.minimum(jnp.max(q), 0.0)
+    return _outside_norm(q) + jnp.minimum(jnp.max(q), 0.0)
 
 
 def sd_round_box(p, half_extents, radius):
@@ -72,7 +83,7 @@ def sd_cylinder(p, radius, half_height):
     d = jnp.abs(jnp.stack([safe_norm(p[jnp.array([0, 2])]), p[1]])) - jnp.stack(
         [radius, half_height]
     )
-    return jnp.minimum(jnp.max(d), 0.0) + safe_norm(jnp.maximum(d, 0.0))
+    return jnp.minimum(jnp.max(d), 0.0) + _outside_norm(d)
 
 
 def sd_ellipsoid(p, radii):
