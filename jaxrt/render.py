@@ -46,20 +46,21 @@ def _render(scene, camera, settings):
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
     origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
 
-    def kernel(ray, scene=scene):
-        o, d, cone = ray
+    def kernel(ray, scene=scene, camera=camera):
+        o, d, cone, xy = ray
         out = trace_radiance(scene, o, d, cone, settings)
         if settings.silhouette:
-            out = silhouette.blend(scene, o, d, cone, out, settings)
+            out = silhouette.blend(scene, camera, xy, out, settings)
         return out
 
     n = samples.shape[0]
     if settings.backend != "jax":
         out = _fused(scene, camera, samples, settings, kernel)
     elif settings.batch_size is None or settings.batch_size >= n:
-        out = jax.vmap(kernel)((origins, directions, cones))
+        out = jax.vmap(kernel)((origins, directions, cones, samples))
     else:
-        out = jax.lax.map(kernel, (origins, directions, cones), batch_size=settings.batch_size)
+        out = jax.lax.map(kernel, (origins, directions, cones, samples),
+                          batch_size=settings.batch_size)
     h, w, spp = camera.height, camera.width, settings.spp
     out = {k: v.reshape((h, w, spp) + v.shape[1:]).mean(axis=2) for k, v in out.items()}
     return Image(**out)
@@ -71,11 +72,11 @@ def _fused(scene, camera, samples, settings, kernel):
     from .kernels.fused import map_samples
 
     def one(params, px, py):
-        return kernel(params[1].generate_ray(px, py), params[0])
+        return kernel((*params[1].generate_ray(px, py), jnp.stack([px, py])), *params)
 
     def reference(params, s):
-        rays = jax.vmap(params[1].generate_ray)(s[:, 0], s[:, 1])
-        return jax.lax.map(lambda r: kernel(r, params[0]), rays,
+        rays = (*jax.vmap(params[1].generate_ray)(s[:, 0], s[:, 1]), s)
+        return jax.lax.map(lambda r: kernel(r, *params), rays,
                            batch_size=min(settings.batch_size or s.shape[0], s.shape[0]))
 
     return map_samples(one, (scene, camera), samples, settings, reference)

@@ -66,7 +66,7 @@ import jax
 import jax.numpy as jnp
 
 from .trace import sphere_trace, stop_gradient
-from .vecmath import dot, normalize, safe_div
+from .vecmath import dot, normalize, safe_div, safe_norm
 
 #: Golden-section evaluations that refine the marched near miss: the bracket shrinks
 #: to 0.618¹⁰ ≈ 0.8 % of its width, so t* lies within ~0.4 % of a step of the minimum
@@ -84,6 +84,16 @@ INSIDE_AIM = 0.01
 ILLINOIS_STEPS = 24
 
 _INV_PHI = 0.6180339887498949
+
+
+def _repeat(n, body, init):
+    """`body(i, state)` n times: a while loop with a static bound (a fori_loop would
+    lower to `scan`, which the lane-wise kernels of `jaxrt.kernels` do not run)."""
+    def step(s):
+        i, state = s
+        return i + 1, body(i, state)
+
+    return jax.lax.while_loop(lambda s: s[0] < n, step, (jnp.zeros((), jnp.int32), init))[1]
 
 
 def refine_closest(sdf, origin, direction, cone, hit):
@@ -119,7 +129,7 @@ def refine_closest(sdf, origin, direction, cone, hit):
 
     x1 = b - _INV_PHI * (b - a)
     x2 = a + _INV_PHI * (b - a)
-    a, b, x1, h1, x2, h2 = jax.lax.fori_loop(0, GOLDEN_STEPS, body, (a, b, x1, h(x1), x2, h(x2)))
+    a, b, x1, h1, x2, h2 = _repeat(GOLDEN_STEPS, body, (a, b, x1, h(x1), x2, h(x2)))
     t_g = jnp.where(h1 < h2, x1, x2)
     return jnp.where(jnp.minimum(h1, h2) < h(t_c), t_g, t_c)
 
@@ -165,15 +175,18 @@ def contour_curvature(sdf, p, direction):
     return ii_ee - jnp.where(ok, ii_ve * ii_ve / jnp.where(ok, ii_vv, 1.0), 0.0)
 
 
-def coverage(sdf, origin, direction, cone, hit, settings):
+def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     """(α, valid, p*, d*, n*, r*) of the ray's nearest near miss.
 
-    α = ramp(d* / (W · 2 r*)), differentiable with respect to the scene, the ray and
-    the cone through d* = f(p*; θ) / |∇f(p*)| and r* = r(t*) (module docstring); 0
-    where the ray has no near miss or starts inside a surface. Its gradient (not its
-    value) is scaled by the length ratio 1 − d* κ (κ the apparent curvature of the
-    level-set contour at p*) of the outline and the offset curve the sample lies on.
-    n* is the unit gradient of f at p* (no gradient).
+    α = ramp(d* / (W · s*)), differentiable with respect to the scene and the camera
+    through d* = f(p*; θ) / |∇f(p*)| and the pixel footprint s* = |Jᵀ n*| (module
+    docstring); 0 where the ray has no near miss or starts inside a surface.
+    `jacobian` = (∂o/∂(px, py), ∂d/∂(px, py)), [3, 2] each: how the ray moves per pixel;
+    at t* the ray point moves by J = ∂o + t* ∂d per pixel, and s* is how fast it
+    approaches the surface (world units per pixel). The gradient of α (not its value)
+    is scaled by the length ratio 1 − d* κ (κ the apparent curvature of the level-set
+    contour at p*) of the outline and the offset curve the sample lies on. n* is the
+    unit gradient of f at p* and r* = r(t*) the cone radius (both without gradient).
     """
     dtype = origin.dtype
     t_star = refine_closest(sdf, origin, direction, cone, hit)
@@ -181,18 +194,22 @@ def coverage(sdf, origin, direction, cone, hit, settings):
     f, grad = jax.value_and_grad(lambda q: sdf(q))(p_star)
     grad = jax.lax.stop_gradient(grad)
     grad_norm = jnp.sqrt(dot(grad, grad))
-    radius = cone[0] + cone[1] * t_star  # half a pixel at t*
+    n = normalize(grad)
+    radius = jax.lax.stop_gradient(cone[0] + cone[1] * t_star)  # half a pixel at t*
+    d_origin, d_direction = jacobian
+    footprint = safe_norm((d_origin + t_star * d_direction).T @ n)
     width = settings.silhouette_width / jnp.sqrt(jnp.asarray(settings.spp, dtype))
-    valid = (~hit.inside) & (t_star > 0.0) & (radius > 0.0) & (grad_norm > 0.0)
+    valid = ((~hit.inside) & (t_star > 0.0) & (radius > 0.0) & (grad_norm > 0.0)
+             & (footprint > 0.0))
     distance = safe_div(f, jnp.where(valid, grad_norm, 1.0))
-    alpha = ramp(safe_div(distance, width * 2.0 * jnp.where(valid, radius, 1.0)))
+    alpha = ramp(safe_div(distance, width * jnp.where(valid, footprint, 1.0)))
     # Offset-curve correction of the gradient: a sample at distance d outside an
     # outline of curvature κ₀ lies on a curve 1 + κ₀ d = 1 / (1 − κ d) times longer.
     kappa = contour_curvature(sdf, p_star, direction)
     scale = jax.lax.stop_gradient(jnp.clip(1.0 - distance * kappa, 0.0, 2.0))
     alpha = jax.lax.stop_gradient(alpha) + scale * (alpha - jax.lax.stop_gradient(alpha))
     alpha = jnp.where(valid, alpha, 0.0)
-    return alpha, valid, p_star, distance, normalize(grad), radius
+    return alpha, valid, p_star, distance, n, radius
 
 
 def inner_hit(sdf, origin, p_star, distance, n, radius, settings):
@@ -239,14 +256,14 @@ def inner_hit(sdf, origin, p_star, distance, n, radius, settings):
         side = jnp.where(outside, 1, -1).astype(jnp.int32)
         return a_new, ga_new, b_new, gb_new, side
 
-    a, _, _, _, _ = jax.lax.fori_loop(
-        0, ILLINOIS_STEPS, body, (a, ga, t_q, gb, jnp.zeros((), jnp.int32)))
+    a, _, _, _, _ = _repeat(ILLINOIS_STEPS, body, (a, ga, t_q, gb, jnp.zeros((), jnp.int32)))
     # The outside end of the bracket: f ≥ 0 there, within rounding of the root.
     return o + a * aim, aim, found & jnp.isfinite(a)
 
 
-def blend(scene, origin, direction, cone, out, settings):
-    """Apply the estimator to one camera ray's `trace_radiance` result `out`.
+def blend(scene, camera, xy, out, settings):
+    """Apply the estimator to the `trace_radiance` result `out` of the camera ray through
+    continuous pixel position `xy` = (px, py).
 
     rgb ← α · L(inner ray) + (1 − α) · rgb; coverage ← coverage + α · (1 − coverage).
     The inner ray starts at its entry point (`inner_hit`), so that the integrator
@@ -255,11 +272,14 @@ def blend(scene, origin, direction, cone, out, settings):
     """
     from .integrator import trace_radiance
 
+    origin, direction, cone = camera.generate_ray(xy[0], xy[1])
+    jacobian = jax.lax.stop_gradient(
+        jax.jacfwd(lambda q: camera.generate_ray(q[0], q[1])[:2])(xy))
     # The camera ray's march again (its near miss is not in `out`); no polishing.
     march = settings.replace(newton_steps=0)
     hit = sphere_trace(scene.surface, origin, direction, march, cone=cone)
     alpha, valid, p_star, distance, n, radius = coverage(
-        scene.surface, origin, direction, cone, hit, settings)
+        scene.surface, origin, direction, cone, jacobian, hit, settings)
     entry, aim, found = inner_hit(scene.surface, origin, p_star, distance, n, radius, settings)
     use = valid & found
     alpha = jnp.where(use, alpha, 0.0)
