@@ -287,6 +287,7 @@ class Cauchy(IOR):
     def __init__(self, a, b, c=0.0):
         self.a, self.b, self.c = (_leaf(x) for x in (a, b, c))
 
+    @eqx.filter_jit
     def __call__(self, wavelength):
         lam2 = (jnp.asarray(wavelength) * 1e-3) ** 2
         inv = safe_div(1.0, lam2)
@@ -311,6 +312,7 @@ class Sellmeier(IOR):
             raise ValueError(f"`Sellmeier(b=..., c=...)` must be two sequences of equal length, got shapes {b.shape} and {c.shape}")
         self.b, self.c = b, c
 
+    @eqx.filter_jit
     def __call__(self, wavelength):
         lam2 = (jnp.asarray(wavelength) * 1e-3) ** 2
         lam2 = lam2[..., None]

@@ -185,9 +185,9 @@ def test_sdf_bound_and_sphere_tracing_agree():
     field = HeightField(SINE)
     pts = rng.uniform(-3, 3, (64, 3))
     grid = np.stack(np.meshgrid(np.linspace(-6, 6, 241), np.linspace(-6, 6, 241)), -1).reshape(-1, 2)
-    surf = np.stack([grid[:, 0], np.asarray(jax.vmap(SINE)(grid[:, 0], grid[:, 1])), grid[:, 1]], -1)
+    surf = np.stack([grid[:, 0], np.asarray(jax.jit(jax.vmap(SINE))(grid[:, 0], grid[:, 1])), grid[:, 1]], -1)
     true = np.min(np.linalg.norm(pts[:, None, :] - surf[None], axis=-1), axis=1)
-    bound = np.abs(np.asarray(jax.vmap(field)(jnp.asarray(pts))))
+    bound = np.abs(np.asarray(jax.jit(jax.vmap(field))(jnp.asarray(pts))))
     assert np.all(bound <= true + 1e-9)
     o, d = _rays(64, seed=8)
     marched = _intersect(field, o, d, S64)
@@ -212,8 +212,8 @@ def test_hit_gradient_matches_finite_differences():
         @jax.jit
         def t_and_grads(th):
             t = lambda s: lambda v: HeightField(make(v)).intersect(o, d, s).t  # noqa: E731
-            return (t(polished)(th + h), t(polished)(th - h), jax.grad(t(polished))(th),
-                    jax.grad(t(S64))(th), t(polished)(th))
+            t_up, t_down, t0 = jax.vmap(t(polished))(jnp.stack([th + h, th - h, th]))
+            return t_up, t_down, jax.grad(t(polished))(th), jax.grad(t(S64))(th), t0
 
         t_up, t_down, grad, grad1, t0 = t_and_grads(theta)
         fd = (t_up - t_down) / (2 * h)

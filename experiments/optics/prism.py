@@ -22,6 +22,7 @@ meet a screen `screen_distance` after the prism. Writes `results.json` and the r
 """
 
 import argparse
+import functools
 import json
 import math
 import tomllib
@@ -75,8 +76,8 @@ def geometry(cfg, ior):
         "corners": np.stack([apex, left_base, left_base * np.array([-1.0, 1.0, 1.0])]),
     }
     # The screen: perpendicular to the reference wavelength's central ray, after the prism.
-    _, p2, _, d2, _, _ = trace_ray(jnp.asarray(0.0), jnp.asarray(n_ref), {k: jnp.asarray(v) for k, v in g.items()},
-                                   screen=False)
+    _, p2, _, d2, _, _ = jax.jit(lambda e, g: trace_ray(jnp.zeros_like(e), e, g, screen=False))(
+        jnp.asarray(n_ref), {k: jnp.asarray(v) for k, v in g.items() if k != "corners"})
     d2 = np.asarray(d2)
     g["screen_normal"] = -d2
     g["screen_centre"] = np.asarray(p2) + float(cfg["screen_distance"]) * d2
@@ -140,20 +141,24 @@ def run(cfg, out_dir):
     lam = spectral.sample_wavelengths(int(cfg["wavelengths"]))
     report = np.asarray(cfg["report_wavelengths"], float)
     rays = int(cfg["rays"])
-    u = (jnp.arange(rays) + 0.5) / rays - 0.5
-    u = u * float(cfg["beam_width"])
+    width = float(cfg["beam_width"])
 
-    # One flat vmap over (wavelength, ray) pairs (see rainbow.py on nested vmaps).
-    trace = jax.jit(jax.vmap(lambda ui, e: trace_ray(ui, e, g)))
-    uu, ee = jnp.meshgrid(u, jnp.zeros_like(lam))          # [λ, rays]
-    ee = ior(_jittered(lam, rays))
-    p1, p2, p3, d_out, s, weight = (np.asarray(x).reshape(uu.shape + np.shape(x)[1:])
-                                    for x in trace(uu.ravel(), ee.ravel()))
+    @functools.partial(jax.jit, static_argnums=0)
+    def beam(n_rays, lam, g):
+        """Every (wavelength, ray) pair of a beam of n_rays, [λ, rays, ...]; one flat vmap
+        over the pairs (see rainbow.py on nested vmaps)."""
+        u = ((jnp.arange(n_rays) + 0.5) / n_rays - 0.5) * width
+        uu = jnp.broadcast_to(u, (lam.shape[0], n_rays))
+        eta = ior(_jittered(lam, n_rays))
+        out = jax.vmap(lambda ui, e: trace_ray(ui, e, g))(uu.ravel(), eta.ravel())
+        return jax.tree_util.tree_map(lambda x: x.reshape(uu.shape + x.shape[1:]), out)
+
+    p1, p2, p3, d_out, s, weight = (np.asarray(x) for x in beam(rays, lam, g))
 
     # Central rays at the reported wavelengths: traced deviation against the formula.
-    central = jax.jit(jax.vmap(lambda e: trace_ray(jnp.zeros_like(e), e, g)))
-    eta_report = ior(jnp.asarray(np.concatenate([report, [400.0, 700.0]])))
-    _, _, p3_c, d_c, s_c, w_c = (np.asarray(x) for x in central(eta_report))
+    central = jax.jit(lambda lam_c, g: jax.vmap(lambda e: (e,) + trace_ray(jnp.zeros_like(e), e, g))(ior(lam_c)))
+    eta_report, _, _, p3_c, d_c, s_c, w_c = (
+        np.asarray(x) for x in central(jnp.asarray(np.concatenate([report, [400.0, 700.0]])), g))
     d_in = g_np["d_in"]
     traced = np.degrees(np.arccos(np.clip(d_c @ d_in, -1.0, 1.0)))
     formula = [math.degrees(prism_deviation(float(n), g_np["theta_i"], g_np["apex_angle"])) for n in eta_report]
@@ -176,11 +181,8 @@ def run(cfg, out_dir):
     jr.io.write_png(out_dir / "prism.png", top, exposure=float(cfg["exposure"]))
     # The screen from a denser beam (the top view needs few rays, the histogram many).
     screen_rays = int(cfg["screen_rays"])
-    us = ((jnp.arange(screen_rays) + 0.5) / screen_rays - 0.5) * float(cfg["beam_width"])
-    uu, ee = jnp.meshgrid(us, jnp.zeros_like(lam))
-    ee = ior(_jittered(lam, screen_rays))
-    out = trace(uu.ravel(), ee.ravel())
-    s_dense, w_dense = (np.asarray(out[k]).reshape(uu.shape) for k in (4, 5))
+    out = beam(screen_rays, lam, g)
+    s_dense, w_dense = np.asarray(out[4]), np.asarray(out[5])
     strip = _screen(cfg, s_dense, w_dense, m, screen_rays)
     jr.io.write_png(out_dir / "prism_screen.png", strip)
     (out_dir / "results.json").write_text(json.dumps(results, indent=2))
@@ -225,7 +227,7 @@ def _top_view(cfg, g, p1, p2, p3, weight, m, rays):
     splat(source, p1, np.ones_like(weight))
     splat(p1, p2, np.where(weight > 0, 1.0, 0.0) * 0.95)
     splat(p2, p3, weight)
-    f1 = np.asarray(jax.vmap(lambda e: jr.bsdf.fresnel_dielectric(-g["d_in"] @ g["n_left"], e))(
+    f1 = np.asarray(jax.jit(jax.vmap(lambda e: jr.bsdf.fresnel_dielectric(-g["d_in"] @ g["n_left"], e)))(
         spectral.ior_preset(cfg["glass"])(spectral.sample_wavelengths(n_lam))))
     splat(p1, p1 + 0.6 * reflected, np.broadcast_to(f1[:, None], weight.shape))
     # (the reflected beam uses each stratum's midpoint index: F hardly varies with λ)

@@ -93,41 +93,47 @@ def radiance(surface, eta, origin, d, sky_zenith, sky_horizon, water, settings):
     return jnp.where(hit.hit, seen, water)
 
 
-def render(cfg, width, height, samples, amplitude=0.0, row_only=False):
-    """Render the fisheye (or, with `row_only`, a 1-row strip through the zenith with
-    sub-samples along the row only). Returns [height, width, 3] linear RGB and the
-    zenith angle (degrees, signed) of each column's centre."""
+def view_directions(width, height, samples, fov, row_only=False):
+    """Sample directions of a fisheye view (numpy): [rows, sub_y, width, samples, 3]
+    and the image radius r of each, plus the zenith angle (degrees, signed) of each
+    column's centre. With `row_only`, one row through the zenith, sub-sampled along it."""
+    s = (np.arange(samples) + 0.5) / samples
+    x = 2.0 * (np.arange(width)[:, None] + s[None, :]).reshape(-1) / width - 1.0
+    if row_only:
+        y, rows, sub_y = np.zeros(1), 1, 1
+    else:
+        y = 1.0 - 2.0 * (np.arange(height)[:, None] + s[None, :]).reshape(-1) / height
+        rows, sub_y = height, samples
+    xx, yy = np.meshgrid(x, y)
+    d, r = (np.asarray(a) for a in fisheye_directions(jnp.asarray(xx), jnp.asarray(yy), fov))
+    angle = (2.0 * (np.arange(width) + 0.5) / width - 1.0) * fov / 2.0
+    shape = (rows, sub_y, width, samples)
+    return d.reshape(shape + (3,)), r.reshape(shape), angle
+
+
+def render(cfg, views, amplitude=0.0):
+    """Render several fisheye views (`view_directions` outputs) in one compiled program;
+    returns their box-filtered [rows, width, 3] linear RGB images."""
     eta = water_index(cfg)
-    surface = HeightField(SineHeight(amplitude, frequency=cfg.get("wave_frequency", (1.0, 0.0))))
     settings = jr.RenderSettings(max_distance=1e3)
     colours = [jnp.asarray(cfg[k], float) for k in ("sky_zenith", "sky_horizon", "water")]
-    fov = float(cfg["field_of_view"])
     origin = jnp.array([0.0, -float(cfg["depth"]), 0.0])
-    s = (jnp.arange(samples) + 0.5) / samples
-    px = (jnp.arange(width)[:, None] + s[None, :]).reshape(-1)
-    x = 2.0 * px / width - 1.0
-    if row_only:
-        y = jnp.zeros(1)
-        sub_y = 1
-    else:
-        py = (jnp.arange(height)[:, None] + s[None, :]).reshape(-1)
-        y = 1.0 - 2.0 * py / height
-        sub_y = samples
-    xx, yy = jnp.meshgrid(x, y)
-    d, r = fisheye_directions(xx, yy, fov)
+    frequency = cfg.get("wave_frequency", (1.0, 0.0))
 
     @jax.jit
-    def shade(d, r):
-        flat = d.reshape(-1, 3)
-        rgb = jax.vmap(lambda di: radiance(surface, eta, origin, di, *colours, settings))(flat)
-        rgb = rgb.reshape(d.shape)
-        return jnp.where((r <= 1.0)[..., None], rgb, 0.0)
+    def shade(d, amplitude):
+        surface = HeightField(SineHeight(amplitude, frequency=frequency))
+        return jax.vmap(lambda di: radiance(surface, eta, origin, di, *colours, settings))(d)
 
-    rgb = shade(d, r)
-    rows = 1 if row_only else height
-    rgb = rgb.reshape(rows, sub_y, width, samples, 3).mean(axis=(1, 3))
-    angle = (2.0 * (np.arange(width) + 0.5) / width - 1.0) * fov / 2.0
-    return np.asarray(rgb), angle
+    flat = np.concatenate([d.reshape(-1, 3) for d, _, _ in views])
+    rgb = np.asarray(shade(jnp.asarray(flat), jnp.asarray(amplitude, float)))
+    images, start = [], 0
+    for d, r, _ in views:
+        n = r.size
+        part = np.where((r <= 1.0)[..., None], rgb[start:start + n].reshape(d.shape), 0.0)
+        images.append(part.mean(axis=(1, 3)))
+        start += n
+    return images
 
 
 def measure_window(profile, angle, threshold):
@@ -163,18 +169,20 @@ def run(cfg, out_dir):
     eta = water_index(cfg)
     theory = 2.0 * math.degrees(math.asin(1.0 / eta))
 
-    strip, angle = render(cfg, int(cfg["profile_width"]), 1, int(cfg["profile_samples"]), row_only=True)
+    fov = float(cfg["field_of_view"])
+    strip_view = view_directions(int(cfg["profile_width"]), 1, int(cfg["profile_samples"]), fov, row_only=True)
+    image_view = view_directions(int(cfg["width"]), int(cfg["height"]), int(cfg["samples"]), fov)
+    strip, image = render(cfg, [strip_view, image_view])
+    angle, image_angle = strip_view[2], image_view[2]
     profile = np.asarray(luminance(strip[0]))
     full, left, right = measure_window(profile, angle, float(cfg["edge_threshold"]))
 
-    image, image_angle = render(cfg, int(cfg["width"]), int(cfg["height"]), int(cfg["samples"]))
     row = np.asarray(luminance(image[image.shape[0] // 2]))
     # The centre row of an even-sized image sits half a pixel below the zenith.
     full_image, _, _ = measure_window(row, image_angle, float(cfg["edge_threshold"]))
     jr.io.write_png(out_dir / "snell_window.png", image, exposure=float(cfg["exposure"]))
     if float(cfg.get("wave_amplitude", 0.0)) > 0.0:
-        waves, _ = render(cfg, int(cfg["width"]), int(cfg["height"]), int(cfg["samples"]),
-                          amplitude=float(cfg["wave_amplitude"]))
+        waves, = render(cfg, [image_view], amplitude=float(cfg["wave_amplitude"]))
         jr.io.write_png(out_dir / "snell_window_waves.png", waves, exposure=float(cfg["exposure"]))
 
     results = {
