@@ -279,15 +279,12 @@ def inside_sphere_scene(albedo, radius=1.0, center=(0.0, 0.0, 0.0)):
 
 
 def cluttered_scene():
-    """Every combination family, a deformation, both light kinds and two materials."""
+    """A sphere on a plane beside a twisted box: two materials, both light kinds."""
     surface = sdf.Union(
         sdf.Translate(sdf.Sphere(1.0, material=0), offset=(0.0, 1.0, 0.0)),
         sdf.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=1),
         sdf.Translate(sdf.Twist(sdf.Box((0.3, 0.8, 0.3), material=1), rate=2.0, radius=0.5),
                       offset=(1.8, 0.8, 0.0)),
-        sdf.SmoothUnion(sdf.Translate(sdf.Torus(0.5, 0.15), offset=(-1.8, 0.5, 0.0)),
-                        sdf.Translate(sdf.Capsule(0.4, 0.2, material=1), offset=(-1.8, 0.9, 0.0)),
-                        k=0.2),
     )
     return jr.Scene(
         surface=surface,
