@@ -228,7 +228,8 @@ class TabulatedBRDF(Material):
         return jnp.where((wo[2] > 0.0) & (wi[2] > 0.0), f, 0.0)
 
     def base_color(self):
-        return jnp.maximum(self.table[0, 45, 90], 0.0) * jnp.pi
+        # π f_r at an off-specular cell (θh ≈ 40°, θd ≈ 10°): about the diffuse albedo.
+        return jnp.maximum(self.table[60, 10, 90], 0.0) * jnp.pi
 
 
 class SumBRDF(Material):

@@ -17,7 +17,8 @@ Writes under the output folder (default out/ngan_fit/): `results.md` and
 `results.json` (fitted parameters and errors per model), `slices.png` (in-plane
 slices of f cos θi, data against fits, at the `plots.theta_i` incident angles, linear
 and log), `spheres/<model>.exr|png` (a sphere per model under a point light, rendered
-with `jaxrt.render`, and the measured table itself as `reference`), `spheres.png` (all
+with `jaxrt.render`, and the measured table itself as `reference`, nearest cell, its
+missing cells black), `spheres.png` (all
 of them side by side with their errors), the synthetic table if one was generated, and
 the resolved `config.json`. Prints the table.
 
@@ -32,6 +33,7 @@ import time
 import tomllib
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -168,7 +170,8 @@ def synthetic_table(material, noise, missing, seed):
 
 
 def split_samples(table, n_fit, n_test, d, seed):
-    """Disjoint fitting and held-out `BRDFSamples`, each with weights summing to 1."""
+    """Disjoint fitting and held-out `BRDFSamples`, each with weights summing to 1
+    (with fewer valid cells than asked for, the held-out set gets what is left)."""
     both = fb.sample_merl(table, n_fit + n_test, max_theta_deg=d["max_theta"],
                           weighting=d["weighting"], seed=seed)
     n = both.f.shape[0]
@@ -194,8 +197,9 @@ def _fmt(x):
     return "[" + "; ".join(_fmt(row) for row in a) + "]"
 
 
-def markdown_table(rows, source):
-    lines = [f"Fits to {source} (E: Ngan et al. 2005 cosine-weighted RMS error, 1/sr).", "",
+def markdown_table(rows, source, settings=""):
+    lines = [f"Fits to {source} (E: Ngan et al. 2005 cosine-weighted RMS error, 1/sr).",
+             *([settings] if settings else []), "",
              "| model | parameters | E (fit) | E (held out) | objective | steps | converged | time (s) |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -263,17 +267,41 @@ def plot_slices(path, table, fits, theta_is, max_theta):
     plt.close(fig)
 
 
-def render_sphere(material, r):
-    """A unit sphere with `material` under one point light (float32, no shadows: the
-    sphere cannot shadow itself where it is lit). Returns [H, W, 3] linear RGB."""
-    scene = jr.Scene(surface=jr.sdf.Sphere(1.0, material=0), materials=[material],
-                     lights=[jr.PointLight(r["light_position"], r["light_intensity"])],
+def render_spheres(materials, r):
+    """One unit sphere per material, each under the same point light (`render.light_*`,
+    placed relative to the sphere) and seen from the same relative viewpoint. Returns a
+    list of [H, W, 3] linear RGB (float32, no shadows: a sphere cannot shadow itself
+    where it is lit).
+
+    All spheres are in one multi-material scene, far enough apart that each camera
+    sees only its own sphere (rays stop at 2 × the camera distance); the light and the
+    camera are moved from sphere to sphere. Moving them changes values, not structure,
+    so the scene is compiled once for all the models.
+    """
+    d = float(r["camera_distance"])
+    # A ray stops within 2d, so at most 2d·tan(half-diagonal angle) off axis; the next
+    # sphere (radius 1) starts farther than that.
+    aspect = r["width"] / r["height"]
+    spread = math.tan(math.radians(r["fov"]) / 2.0) * math.hypot(1.0, aspect)
+    spacing = 2.0 * d * spread + 3.0
+    centres = [np.array([(k - (len(materials) - 1) / 2) * spacing, 0.0, 0.0])
+               for k in range(len(materials))]
+    surface = jr.sdf.Union(*(jr.sdf.Translate(jr.sdf.Sphere(1.0, material=k), offset=c)
+                             for k, c in enumerate(centres)))
+    light = np.asarray(r["light_position"], float)
+    scene = jr.Scene(surface, materials, lights=[jr.PointLight(light, r["light_intensity"])],
                      background=r["background"])
-    camera = jr.PerspectiveCamera(eye=(0.0, 0.0, -float(r["camera_distance"])), target=(0.0, 0.0, 0.0),
-                                  up=(0.0, 1.0, 0.0), fov=r["fov"], width=r["width"], height=r["height"])
     # batch_size=None: one vmap over the (few) rays compiles ~3x faster than tiles.
-    settings = jr.RenderSettings(max_steps=64, shadows="none", batch_size=None)
-    return np.asarray(jr.render(scene, camera, settings).rgb)
+    settings = jr.RenderSettings(max_steps=64, shadows="none", batch_size=None,
+                                 max_distance=2.0 * d)
+    images = []
+    for c in centres:
+        lit = eqx.tree_at(lambda s: s.lights[0].position, scene, jnp.asarray(c + light))
+        camera = jr.PerspectiveCamera(eye=tuple(c + [0.0, 0.0, -d]), target=tuple(c),
+                                      up=(0.0, 1.0, 0.0), fov=r["fov"], width=r["width"],
+                                      height=r["height"])
+        images.append(np.asarray(jr.render(lit, camera, settings).rgb))
+    return images
 
 
 def sphere_sheet(path, images, exposure):
@@ -285,7 +313,7 @@ def sphere_sheet(path, images, exposure):
     n = len(images)
     cols = min(n, 5)
     rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.2 * cols, 2.4 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.2 * cols, 2.7 * rows), squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
     for ax, (title, rgb) in zip(axes.ravel(), images):
@@ -344,7 +372,10 @@ def run(cfg, out):
         fits.append((label, res.material))
         print(f"  {label}: E = {res.error:.5f} ({res.steps} steps, {seconds} s)", flush=True)
 
-    md = markdown_table(rows, source)
+    settings = (f"{int(fit_data.f.shape[0])} cells fitted, {int(test_data.f.shape[0])} held out; "
+                f"θi, θo ≤ {d['max_theta']}°; weighting {d['weighting']}; compression "
+                f"{f['compression']}; solver {f['solver']}; starts α = {f['alphas']}.")
+    md = markdown_table(rows, source, settings)
     (out / "results.md").write_text(md)
     (out / "results.json").write_text(json.dumps(
         {"source": source, "samples_fit": int(fit_data.f.shape[0]),
@@ -355,8 +386,8 @@ def run(cfg, out):
 
     r = cfg["render"]
     images = []
-    for label, material in [("reference", fb.TabulatedBRDF(table))] + fits:
-        rgb = render_sphere(material, r)
+    named = [("reference", fb.TabulatedBRDF(table))] + fits
+    for (label, _), rgb in zip(named, render_spheres([m for _, m in named], r)):
         jr.io.write_exr(out / "spheres" / f"{label}.exr", rgb)
         jr.io.write_png(out / "spheres" / f"{label}.png", rgb, exposure=r["exposure"])
         err = next((row["error_heldout"] for row in rows if row["label"] == label), None)
