@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from .bsdf.scattering import reflect, refract
 from .lights import shadow_ray
 from .trace import hit_epsilon, sphere_trace, surface_normal
-from .vecmath import dot, to_local
+from .vecmath import dot, safe_div, to_local
 
 
 def select(values, index):
@@ -66,18 +66,59 @@ def spawn_offset(p, settings, epsilon=None):
     return settings.ray_offset * (eps + rounding)
 
 
-def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True):
+#: Newton steps that settle a spawned origin on the level set f = ±offset (see
+#: `spawn_origin`): one per face that can be nearer than the offset; two settle the
+#: edges and corners of boxes (a third face is then already ≥ offset away).
+SPAWN_STEPS = 2
+
+
+def surface_distance(scene, which, x):
+    """Distance bound of surface `which` (0: the SDF, scaled by 1/L; k: height field
+    k − 1) at x: the function whose ε band the marchers test."""
+    values = [scene.surface(x) / scene.surface.lipschitz().astype(x.dtype)]
+    values += [field.eval(x)[0] for field in scene.heightfields]
+    return select(values, which)
+
+
+def spawn_origin(scene, which, p, n, offset):
+    """Origin of a secondary ray that leaves surface `which` at p on the side of the
+    unit normal n (n points to where the ray goes: outward for a reflection seen from
+    outside, inward for a refraction into the object, …).
+
+    x₀ = p + offset · n, then SPAWN_STEPS Newton steps towards the level set
+    f(x) = s · offset of the surface's distance bound f (s = +1 outside, −1 inside,
+    the side n points to):  x ← x − (f(x) − s · offset) ∇f / |∇f|².
+    Along a smooth surface x₀ is already there and the steps change nothing; near an
+    edge or a corner, where another face of the same surface is nearer than `offset`,
+    they push the origin out of that face's ε band too, where the ray would otherwise
+    re-hit it at t = 0. The correction carries no gradient (the origin's gradient is
+    that of p).
+    """
+    x0 = p + offset * n
+    x = jax.lax.stop_gradient(x0)
+    f_and_grad = jax.value_and_grad(lambda q: surface_distance(scene, which, q))
+    _, g0 = f_and_grad(jax.lax.stop_gradient(p))
+    side = jnp.where(dot(n, g0) >= 0.0, 1.0, -1.0).astype(p.dtype)
+    target = side * jax.lax.stop_gradient(offset)
+    for _ in range(SPAWN_STEPS):
+        f, g = f_and_grad(x)
+        x = x - safe_div(f - target, dot(g, g)) * g
+    return x0 + jax.lax.stop_gradient(x - x0)
+
+
+def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True, origin=None):
     """Σ_lights f(wo, wi) · E · cos θi · V  +  ambient, at point p with normal n (facing wo).
 
     f is the material's BRDF in the local frame of n; E the light's irradiance
     (I / r² for point lights); V the shadow-ray visibility. `colour` turns RGB values
     into the colour representation of the render (RGB: identity; spectral: the value
     at one wavelength), applied to f and E separately. Inactive lanes trace no shadow
-    ray (it stops at its first step).
+    ray (it stops at its first step). Shadow rays start at `origin` (default
+    p + spawn_offset · n; the integrator passes `spawn_origin`).
     """
     colour = _rgb if colour is None else colour
     wo_local = to_local(wo, n)
-    origin = p + spawn_offset(p, settings) * n
+    origin = p + spawn_offset(p, settings) * n if origin is None else origin
     # ambient() may come in the default float dtype (Material's zeros): cast to p's.
     radiance = colour(select([m.ambient().astype(p.dtype) for m in scene.materials], material))
     diffuse = [m for m in scene.materials if m.has_diffuse]
@@ -133,6 +174,7 @@ class SceneHit(NamedTuple):
     normal    [3] unit outward normal at the hit (SDF gradient, or the height field's
               (−∂h/∂x, 1, −∂h/∂z) normal, pointing up).
     material  index of the material hit (int32).
+    surface   which surface was hit (int32): 0 the SDF, k the height field k − 1.
     """
 
     t: jnp.ndarray
@@ -140,6 +182,7 @@ class SceneHit(NamedTuple):
     steps: jnp.ndarray
     normal: jnp.ndarray
     material: jnp.ndarray
+    surface: jnp.ndarray
 
 
 def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
@@ -151,16 +194,18 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     p = origin + t * direction
     normal = surface_normal(surface, p, settings)
     material = surface.eval(jax.lax.stop_gradient(p))[1]
-    for field in scene.heightfields:
+    which = jnp.zeros((), jnp.int32)
+    for k, field in enumerate(scene.heightfields):
         h = field.intersect(origin, direction, settings, cone=cone, t_max=t_max)
         nearer = h.hit & ((~found) | (h.t < t))
         t = jnp.where(nearer, h.t, t)
         normal = jnp.where(nearer, field.normal(origin + h.t * direction), normal)
         material = jnp.where(nearer, field.material, material)
+        which = jnp.where(nearer, k + 1, which)
         found = found | h.hit
         steps = steps + h.steps
     material = jnp.clip(material, 0, len(scene.materials) - 1)
-    return SceneHit(t, found, steps, normal, material)
+    return SceneHit(t, found, steps, normal, material, which)
 
 
 def visibility(scene, origin, wi, distance, settings):
@@ -283,8 +328,14 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
     n = jnp.where(entering, n_out, -n_out)  # faces the viewer
     wo = -d
 
+    offset = spawn_offset(p, settings, hit_epsilon(settings, hit.t, cone))
+    spawning = spawn and bool(tree.branches)
+    above = None  # origin on the viewer's side: shadow and reflected rays
+    if tree.direct or (spawning and "reflect" in tree.branches):
+        above = spawn_origin(scene, hit.surface, p, n, offset)
     if tree.direct:
-        local = direct_lighting(scene, p, n, wo, material, settings, colour, active=found)
+        local = direct_lighting(scene, p, n, wo, material, settings, colour, active=found,
+                                origin=above)
     else:
         local = colour(select([m.ambient().astype(dtype) for m in scene.materials], material))
     radiance = jnp.where(found, local, jnp.where(ray.alive, colour(scene.background), 0.0))
@@ -301,14 +352,14 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
         "coverage": found.astype(dtype),
     }
     children = {}
-    if spawn and tree.branches:
+    if spawning:
         children = _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p,
-                          n_out, n, entering, material, throughput)
+                          n_out, n, entering, material, throughput, above, offset)
     return Shaded(throughput * radiance, children, aovs)
 
 
 def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out, n, entering,
-           material, throughput):
+           material, throughput, above, offset):
     dtype = p.dtype
     wo = -ray.direction
     zeros = jnp.zeros(3, dtype)
@@ -316,14 +367,13 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
     c_refl, c_trans, eta = _select_material(
         scene.materials, specular, lambda m: m.specular(dot(n_out, wo), wavelength),
         (zeros, zeros, jnp.ones((), dtype)), material)
-    offset = spawn_offset(p, settings, hit_epsilon(settings, hit.t, ray.cone))
     cone = jnp.stack([ray.cone[0] + ray.cone[1] * hit.t, ray.cone[1]])
     yes, no = jnp.ones((), bool), jnp.zeros((), bool)
     children = {}
     if "reflect" in tree.branches:
         spawns = _select_material(scene.materials, lambda m: m.has_reflection,
                                   lambda m: yes, no, material)
-        children["reflect"] = Ray(p + offset * n, reflect(wo, n), cone,
+        children["reflect"] = Ray(above, reflect(wo, n), cone,
                                   throughput * colour(c_refl), ray.sigma, found & spawns)
     if "transmit" in tree.branches:
         spawns = _select_material(scene.materials, lambda m: m.has_transmission,
@@ -334,7 +384,8 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
         # Entering: the medium of the material; leaving: vacuum.
         sigma = jnp.where(entering, colour(inside), 0.0)
         weight = jnp.where(valid, throughput * colour(c_trans), 0.0)
-        children["transmit"] = Ray(p - offset * n, wt, cone, weight, sigma,
+        below = spawn_origin(scene, hit.surface, p, -n, offset)
+        children["transmit"] = Ray(below, wt, cone, weight, sigma,
                                    found & spawns & valid)
     return children
 
