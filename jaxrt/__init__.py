@@ -3,7 +3,8 @@
 This module re-exports the public API; reading it is reading the API index.
 """
 
-from . import bsdf as bsdf, config as config, io as io, sdf as sdf
+from . import bsdf as bsdf, config as config, heightfield as heightfield, io as io, sdf as sdf, spectral as spectral
+from .heightfield import HeightField as HeightField
 from .camera import OrthographicCamera as OrthographicCamera, PerspectiveCamera as PerspectiveCamera
 from .lights import DirectionalLight as DirectionalLight, PointLight as PointLight
 from .render import Image as Image, render as render
