@@ -34,26 +34,41 @@ __all__ = ["map_samples", "Unsupported", "pallas_block"]
 #: lowering (to check it on a machine without a GPU: lower for platform "cuda").
 INTERPRET = None
 
+#: Warps per Pallas program instance (Triton's num_warps).
+PALLAS_NUM_WARPS = 4
+
+#: Loop iterations of the one-ray program per test of a block's loop condition (the
+#: test is a reduction over the block; inactive lanes keep their state either way).
+UNROLL = 1
+
+#: "fused" on XLA: materialise function results outside loops (`lanes._barrier`).
+MATERIALIZE = True
+
 #: Rays per Pallas program instance when batch_size does not say otherwise: the probe
 #: in shared/bench/pallas_probe.py found blocks of 256 fastest on an H100.
 PALLAS_BLOCK = 256
 
 
-def map_samples(fn, params, samples, settings, reference):
+def map_samples(fn, params, samples, settings, reference, grid=None):
     """Evaluate `fn(params, px, py)` for every row of `samples` [N, 2].
 
     Args:
       fn: the one-sample program; returns a dict of arrays.
       params: a pytree (scene, camera); its arrays are the program's parameters.
       samples: [N, 2] pixel positions.
-      settings: `RenderSettings` (backend, batch_size, dtype).
+      settings: `RenderSettings` (backend, batch_size).
       reference: `reference(params, samples) -> dict of [N, ...]`, the vmapped path,
         used for gradients.
+      grid: (rows, columns) with rows · columns = N when the samples form a row-major
+        grid (an image: rows = height, columns = width · spp); tiles are then squares
+        of the grid, whose rays are coherent (they stop after similar numbers of
+        steps), rather than runs of a row.
 
     Returns: a dict of [N, ...] arrays, the same as `reference` gives.
     """
     dyn, static = eqx.partition(params, eqx.is_array)
     backend = resolve_backend(settings.backend)
+    grid = (1, samples.shape[0]) if grid is None else tuple(grid)
 
     def one(dyn_, px, py):
         return fn(eqx.combine(dyn_, static), px, py)
@@ -61,8 +76,8 @@ def map_samples(fn, params, samples, settings, reference):
     @jax.custom_vjp
     def run(dyn_, samples_):
         if backend == "pallas":
-            return _pallas(one, dyn_, samples_, settings)
-        return _tiles(one, dyn_, samples_, settings)
+            return _pallas(one, dyn_, samples_, settings, grid)
+        return _tiles(one, dyn_, samples_, settings, grid)
 
     def run_fwd(dyn_, samples_):
         return run(dyn_, samples_), (dyn_, samples_)
@@ -74,6 +89,38 @@ def map_samples(fn, params, samples, settings, reference):
 
     run.defvjp(run_fwd, run_bwd)
     return run(dyn, samples)
+
+
+def tile_shape(block, grid, pow2=False):
+    """(th, tw): a tile of about `block` samples, as square as the grid allows."""
+    rows, cols = grid
+    if pow2:
+        block = 1 << (max(1, int(block)).bit_length() - 1)
+        th = 1 << ((block.bit_length() - 1) // 2)
+        while th > 1 and th > rows:
+            th //= 2
+        return th, block // th
+    th = max(1, min(rows, int(math.isqrt(max(1, int(block))))))
+    return th, max(1, int(block) // th)
+
+
+def _to_tiles(x, grid, tile):
+    """[rows·cols, ...] → padded [ty, tx, th, tw, ...] (edge padding)."""
+    (rows, cols), (th, tw) = grid, tile
+    ty, tx = -(-rows // th), -(-cols // tw)
+    x = x.reshape((rows, cols) + x.shape[1:])
+    pad = [(0, ty * th - rows), (0, tx * tw - cols)] + [(0, 0)] * (x.ndim - 2)
+    x = jnp.pad(x, pad, mode="edge")
+    x = x.reshape((ty, th, tx, tw) + x.shape[2:])
+    return jnp.moveaxis(x, 2, 1)
+
+
+def _from_tiles(x, grid):
+    """Inverse of `_to_tiles`: [ty, tx, th, tw, ...] → [rows·cols, ...]."""
+    rows, cols = grid
+    ty, tx, th, tw = x.shape[:4]
+    x = jnp.moveaxis(x, 1, 2).reshape((ty * th, tx * tw) + x.shape[4:])
+    return x[:rows, :cols].reshape((rows * cols,) + x.shape[2:])
 
 
 def resolve_backend(backend):
@@ -94,28 +141,29 @@ def _trace_one(one, dyn, dtype):
 # ----------------------------------------------------------------- "fused": XLA tiles
 
 
-def _tiles(one, dyn, samples, settings):
+def _tiles(one, dyn, samples, settings, grid):
     dtype = samples.dtype
     closed, out_shapes = _trace_one(one, dyn, dtype)
     leaves = jax.tree_util.tree_leaves(dyn)
     out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
     n = samples.shape[0]
-    block = min(settings.batch_size or n, n)
-    tiles = -(-n // block)
-    pad = tiles * block - n
-    s = jnp.pad(samples, ((0, pad), (0, 0)), mode="edge").reshape(tiles, block, 2)
+    tile = tile_shape(min(settings.batch_size or n, n), grid)
+    s = _to_tiles(samples, grid, tile)  # [ty, tx, th, tw, 2]
+    ty, tx = s.shape[:2]
+    s = s.reshape((ty * tx,) + s.shape[2:])
 
-    def tile(sb):
+    def run_tile(sb):
         args = [lanes_of(leaf) for leaf in leaves]
-        args += [_lane(sb[:, 0]), _lane(sb[:, 1])]
-        outs = eval_lanes(closed, args, block, unroll=settings_unroll(settings))
-        return [stack_lanes(o, block, sh.dtype) for o, sh in zip(outs, out_leaves)]
+        args += [_lane(sb[..., 0]), _lane(sb[..., 1])]
+        outs = eval_lanes(closed, args, tile, unroll=settings_unroll(settings),
+                          materialize=MATERIALIZE)
+        return [stack_lanes(o, tile, sh.dtype) for o, sh in zip(outs, out_leaves)]
 
-    if tiles == 1:
-        res = [r[None] for r in tile(s[0])]
+    if ty * tx == 1:
+        res = [r[None] for r in run_tile(s[0])]
     else:
-        res = lax.map(tile, s)
-    res = [r.reshape((tiles * block,) + r.shape[2:])[:n] for r in res]
+        res = lax.map(run_tile, s)
+    res = [_from_tiles(r.reshape((ty, tx) + r.shape[1:]), grid) for r in res]
     return jax.tree_util.tree_unflatten(out_tree, res)
 
 
@@ -126,7 +174,7 @@ def _lane(x):
 
 
 def settings_unroll(settings):
-    return getattr(settings, "unroll", 1) or 1
+    return UNROLL
 
 
 # --------------------------------------------------------------- "pallas": one kernel
@@ -142,7 +190,7 @@ def _pow2(n, at_least=1):
     return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
 
-def _pallas(one, dyn, samples, settings):
+def _pallas(one, dyn, samples, settings, grid):
     from jax.experimental import pallas as pl
 
     dtype = samples.dtype
@@ -165,14 +213,19 @@ def _pallas(one, dyn, samples, settings):
     rows = sum(sizes)
     rows_pad = _pow2(rows, 2)
 
-    n = samples.shape[0]
-    block = pallas_block(settings)
-    grid = -(-n // block)
-    npad = grid * block
-    s = jnp.pad(samples, ((0, npad - n), (0, 0)), mode="edge").T  # [2, npad]
+    tile = tile_shape(pallas_block(settings), grid, pow2=True)
+    s = _to_tiles(samples, grid, tile)  # [ty, tx, th, tw, 2]
+    ty, tx, th, tw = s.shape[:4]
+    s = jnp.moveaxis(s, -1, 0)  # [2, ty, tx, th, tw]
+    s = jnp.moveaxis(s, 2, 3).reshape(2, ty * th, tx * tw)
 
     def any_lane(pred):
-        return jnp.max(jnp.where(pred, 1.0, 0.0)) > 0.5
+        v = jnp.where(pred, 1.0, 0.0)
+        while v.ndim:
+            v = jnp.max(v, axis=-1)
+        return v > 0.5
+
+    interpret = (jax.default_backend() != "gpu") if INTERPRET is None else INTERPRET
 
     def kernel(p_ref, s_ref, o_ref):
         args = []
@@ -182,37 +235,36 @@ def _pallas(one, dyn, samples, settings):
                 v = p_ref[off + j]
                 obj[idx] = v if leaf.dtype == dtype else v.astype(leaf.dtype)
             args.append(obj)
-        args += [_lane(s_ref[0, :]), _lane(s_ref[1, :])]
-        outs = eval_lanes(closed, args, block, any_lane=any_lane, unroll=settings_unroll(settings))
+        args += [_lane(s_ref[0]), _lane(s_ref[1])]
+        outs = eval_lanes(closed, args, tile, any_lane=any_lane, unroll=settings_unroll(settings))
         r = 0
         for o in outs:
             for x in o.reshape(-1):
                 x = jnp.asarray(x)
                 if x.dtype != dtype:
                     x = x.astype(dtype)
-                o_ref[r, :] = jnp.broadcast_to(x, (block,))
+                o_ref[r] = jnp.broadcast_to(x, tile)
                 r += 1
 
-    interpret = (jax.default_backend() != "gpu") if INTERPRET is None else INTERPRET
     kwargs = {}
     if not interpret:
         from jax.experimental.pallas import triton as pltriton
 
         kwargs["compiler_params"] = pltriton.CompilerParams(
-            num_warps=getattr(settings, "num_warps", None) or 4, num_stages=1)
+            num_warps=PALLAS_NUM_WARPS, num_stages=1)
     call = pl.pallas_call(
         kernel,
-        out_shape=jax.ShapeDtypeStruct((rows_pad, npad), dtype),
-        grid=(grid,),
-        in_specs=[pl.BlockSpec((nparams,), lambda i: (0,)),
-                  pl.BlockSpec((2, block), lambda i: (0, i))],
-        out_specs=pl.BlockSpec((rows_pad, block), lambda i: (0, i)),
+        out_shape=jax.ShapeDtypeStruct((rows_pad, ty * th, tx * tw), dtype),
+        grid=(ty, tx),
+        in_specs=[pl.BlockSpec((nparams,), lambda i, j: (0,)),
+                  pl.BlockSpec((2, th, tw), lambda i, j: (0, i, j))],
+        out_specs=pl.BlockSpec((rows_pad, th, tw), lambda i, j: (0, i, j)),
         interpret=interpret,
         **kwargs,
     )
-    out = call(pvec, s)[:rows, :n].T  # [n, rows]
+    out = call(pvec, s)[:rows, :grid[0], :grid[1]].reshape(rows, -1).T  # [n, rows]
     res, r = [], 0
     for sh, size in zip(out_leaves, sizes):
-        res.append(out[:, r:r + size].reshape((n,) + sh.shape).astype(sh.dtype))
+        res.append(out[:, r:r + size].reshape((out.shape[0],) + sh.shape).astype(sh.dtype))
         r += size
     return jax.tree_util.tree_unflatten(out_tree, res)

@@ -88,27 +88,35 @@ def lanes_of(x):
 
 
 def stack_lanes(obj, block, dtype):
-    """An object array of lanes (shape S) as one array [block, *S]."""
+    """An object array of lanes (shape S) as one array [*block, *S]."""
+    block = _shape(block)
     shape = obj.shape
     elems = [_broadcast(e, block, dtype) for e in obj.reshape(-1)]
     if not elems:
-        return jnp.zeros((block,) + shape, dtype)
-    return jnp.stack(elems, axis=-1).reshape((block,) + shape)
+        return jnp.zeros(block + shape, dtype)
+    return jnp.stack(elems, axis=-1).reshape(block + shape)
+
+
+def _shape(block):
+    return (block,) if isinstance(block, int) else tuple(block)
 
 
 def _broadcast(x, block, dtype):
-    """A lane as a [block] array of `dtype`."""
+    """A lane as an array of shape `block` and `dtype`."""
+    block = _shape(block)
     x = jnp.asarray(x, dtype)
-    return jnp.broadcast_to(x, (block,)) if x.shape != (block,) else x
+    return jnp.broadcast_to(x, block) if x.shape != block else x
 
 
 class _Ctx:
     """Evaluation context: block size, the any-lane reduction and the loop unroll."""
 
-    def __init__(self, block, any_lane, unroll):
+    def __init__(self, block, any_lane, unroll, materialize=False):
         self.block = block
         self.any_lane = any_lane
         self.unroll = unroll
+        self.materialize = materialize
+        self.loop_depth = 0
 
 
 def _any_lane_default(pred):
@@ -574,7 +582,31 @@ def _closed(eqn):
 
 
 def _call(eqn, ins, ctx):
-    return _eval_closed(_closed(eqn), ins, ctx)
+    outs = _eval_closed(_closed(eqn), ins, ctx)
+    if ctx.materialize and ctx.loop_depth == 0:
+        outs = _barrier(outs)
+    return outs
+
+
+def _barrier(objs):
+    """`optimization_barrier` on the traced lanes of `objs`: XLA then computes them
+    once, instead of fusing (and so duplicating) their whole expression into every
+    consumer: a program scalarised into lanes has many consumers per value (each
+    component of each output), and XLA's CPU fusion would recompute shared work."""
+    flat, where = [], []
+    for k, o in enumerate(objs):
+        for idx in np.ndindex(o.shape):
+            x = o[idx]
+            if not _is_const(x):
+                flat.append(x)
+                where.append((k, idx))
+    if not flat:
+        return objs
+    flat = lax.optimization_barrier(flat)
+    objs = [o.copy() for o in objs]
+    for (k, idx), x in zip(where, flat):
+        objs[k][idx] = x
+    return objs
 
 
 def _while(eqn, ins, ctx):
@@ -638,7 +670,11 @@ def _while(eqn, ins, ctx):
 
     flat0 = pack(init)
     active0 = _broadcast(cond_lanes(unpack(flat0)), block, bool)
-    flat, _ = lax.while_loop(cond_fn, body_fn, (flat0, active0))
+    ctx.loop_depth += 1
+    try:
+        flat, _ = lax.while_loop(cond_fn, body_fn, (flat0, active0))
+    finally:
+        ctx.loop_depth -= 1
     return unpack(flat)
 
 
@@ -755,17 +791,20 @@ def _eval_closed(closed, args, ctx):
 def _eval_jaxpr(jaxpr, consts, args, ctx):
     env = {}
 
+    def write(v, x):
+        env[v] = x
+
     def read(v):
         if isinstance(v, jcore.Literal):
             return lanes_of(np.asarray(v.val, dtype=v.aval.dtype))
         return env[v]
 
     for v, x in zip(jaxpr.constvars, consts):
-        env[v] = x
+        write(v, x)
     if len(args) != len(jaxpr.invars):
         raise Unsupported(f"arity mismatch: {len(args)} arguments for {len(jaxpr.invars)} inputs")
     for v, x in zip(jaxpr.invars, args):
-        env[v] = x
+        write(v, x)
     for eqn in jaxpr.eqns:
         ins = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
@@ -780,23 +819,25 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
             )
         for v, o in zip(eqn.outvars, outs):
             if not isinstance(v, jcore.DropVar):
-                env[v] = o
+                write(v, o)
     return [read(v) for v in jaxpr.outvars]
 
 
-def eval_lanes(closed, args, block, any_lane=None, unroll=1):
+def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
       closed: the jaxpr of the one-ray function (`jax.make_jaxpr`).
       args: one object array per input (see `lanes_of`): elements are [block] arrays
         (per ray), 0-d arrays (shared by all rays) or numpy scalars (constants).
-      block: the number of rays (lanes).
+      block: the shape of a lane: the number of rays, or a tile shape (rows, columns).
       any_lane: `pred[block] -> bool scalar`, the loop condition of a block (default
         `jnp.any`; Triton kernels need a max of 0/1 floats).
       unroll: march steps per test of the block's loop condition.
+      materialize: compute the results of the program's function calls (outside
+        loops) once, behind an optimization barrier (see `_barrier`; for XLA on CPUs).
 
     Returns: one object array of lanes per output of the program.
     """
-    ctx = _Ctx(block, any_lane or _any_lane_default, unroll)
+    ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize)
     return _eval_closed(closed, list(args), ctx)
