@@ -79,7 +79,8 @@ def _fused(scene, camera, samples, settings, kernel):
         return jax.lax.map(lambda r: kernel(r, *params), rays,
                            batch_size=min(settings.batch_size or s.shape[0], s.shape[0]))
 
-    return map_samples(one, (scene, camera), samples, settings, reference)
+    grid = (camera.height, camera.width * settings.spp)  # samples are pixel-major
+    return map_samples(one, (scene, camera), samples, settings, reference, grid=grid)
 
 
 def _dtype(settings):
