@@ -252,18 +252,20 @@ def ray_tree(scene, settings, spectral=None):
     Reflected rays exist if some material `has_reflection`, refracted ones if some
     `has_transmission`; depth is `settings.max_depth` if either exists, else 0.
     Spectral rendering (`settings.wavelengths` samples) only if some material
-    `is_dispersive` (or `spectral=True` forces it, for tests and comparisons;
-    `spectral=False` forces RGB).
+    `is_dispersive` and wavelengths > 0 (with wavelengths = 0 a dispersive scene is
+    rendered in RGB, its indices at the d line); `spectral=True` forces it, for tests
+    and comparisons, `spectral=False` forces RGB. In spectral mode the camera ray does
+    not depend on the wavelength, so it is traced once; its children, per wavelength.
     """
     branches = tuple(name for name, flag in (("reflect", "has_reflection"),
                                              ("transmit", "has_transmission"))
                      if scene.flags(flag))
     depth = settings.max_depth if branches else 0
     if spectral is None:
-        spectral = scene.flags("is_dispersive")
+        spectral = scene.flags("is_dispersive") and settings.wavelengths > 0
+    elif spectral and settings.wavelengths < 3:
+        raise ValueError(f"spectral rendering needs RenderSettings.wavelengths ≥ 3, got {settings.wavelengths}")
     wavelengths = settings.wavelengths if spectral else 0
-    if spectral and wavelengths == 0:
-        raise ValueError("spectral rendering needs RenderSettings.wavelengths ≥ 1")
     return RayTree(branches, depth, scene.flags("has_diffuse"), wavelengths)
 
 
