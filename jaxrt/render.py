@@ -80,7 +80,8 @@ def _fused(scene, camera, samples, settings, kernel):
                            batch_size=min(settings.batch_size or s.shape[0], s.shape[0]))
 
     grid = (camera.height, camera.width * settings.spp)  # samples are pixel-major
-    return map_samples(one, (scene, camera), samples, settings, reference, grid=grid)
+    return map_samples(one, (scene, camera), samples, settings, reference, grid=grid,
+                       centres=settings.spp == 1)  # pixel_samples gives centres at spp 1
 
 
 def _dtype(settings):

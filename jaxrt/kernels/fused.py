@@ -49,7 +49,7 @@ MATERIALIZE = True
 PALLAS_BLOCK = 256
 
 
-def map_samples(fn, params, samples, settings, reference, grid=None):
+def map_samples(fn, params, samples, settings, reference, grid=None, centres=False):
     """Evaluate `fn(params, px, py)` for every row of `samples` [N, 2].
 
     Args:
@@ -63,6 +63,8 @@ def map_samples(fn, params, samples, settings, reference, grid=None):
         grid (an image: rows = height, columns = width · spp); tiles are then squares
         of the grid, whose rays are coherent (they stop after similar numbers of
         steps), rather than runs of a row.
+      centres: the samples are the grid's cell centres (column + ½, row + ½); the
+        Pallas kernel then computes them instead of reading them.
 
     Returns: a dict of [N, ...] arrays, the same as `reference` gives.
     """
@@ -76,7 +78,7 @@ def map_samples(fn, params, samples, settings, reference, grid=None):
     @jax.custom_vjp
     def run(dyn_, samples_):
         if backend == "pallas":
-            return _pallas(one, dyn_, samples_, settings, grid)
+            return _pallas(one, dyn_, samples_, settings, grid, centres)
         return _tiles(one, dyn_, samples_, settings, grid)
 
     def run_fwd(dyn_, samples_):
@@ -190,7 +192,7 @@ def _pow2(n, at_least=1):
     return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
 
-def _pallas(one, dyn, samples, settings, grid):
+def _pallas(one, dyn, samples, settings, grid, centres=False):
     from jax.experimental import pallas as pl
 
     dtype = samples.dtype
@@ -208,16 +210,10 @@ def _pallas(one, dyn, samples, settings, grid):
     if leaves:
         pvec = pvec.at[:k].set(jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves]))
 
-    # outputs: one row per output lane, rows padded to a power of two
-    sizes = [int(np.prod(o.shape)) for o in out_leaves]
-    rows = sum(sizes)
-    rows_pad = _pow2(rows, 2)
-
-    tile = tile_shape(pallas_block(settings), grid, pow2=True)
-    s = _to_tiles(samples, grid, tile)  # [ty, tx, th, tw, 2]
-    ty, tx, th, tw = s.shape[:4]
-    s = jnp.moveaxis(s, -1, 0)  # [2, ty, tx, th, tw]
-    s = jnp.moveaxis(s, 2, 3).reshape(2, ty * th, tx * tw)
+    rows, cols = grid
+    th, tw = tile_shape(pallas_block(settings), grid, pow2=True)
+    ty, tx = -(-rows // th), -(-cols // tw)
+    lanes_out = sum(int(np.prod(o.shape)) for o in out_leaves)
 
     def any_lane(pred):
         v = jnp.where(pred, 1.0, 0.0)
@@ -227,23 +223,29 @@ def _pallas(one, dyn, samples, settings, grid):
 
     interpret = (jax.default_backend() != "gpu") if INTERPRET is None else INTERPRET
 
-    def kernel(p_ref, s_ref, o_ref):
+    def kernel(p_ref, *refs):
+        if centres:  # pixel centres of the grid, computed here: no sample array to read
+            o_refs = refs
+            i, j = pl.program_id(0), pl.program_id(1)
+            py = (i * th + lax.broadcasted_iota(jnp.int32, (th, tw), 0)).astype(dtype) + 0.5
+            px = (j * tw + lax.broadcasted_iota(jnp.int32, (th, tw), 1)).astype(dtype) + 0.5
+        else:
+            s_ref, *o_refs = refs
+            px, py = s_ref[0], s_ref[1]
         args = []
         for leaf, off in zip(leaves, offsets):
             obj = np.empty(leaf.shape, dtype=object)
-            for j, idx in enumerate(np.ndindex(leaf.shape)):
-                v = p_ref[off + j]
+            for j_, idx in enumerate(np.ndindex(leaf.shape)):
+                v = p_ref[off + j_]
                 obj[idx] = v if leaf.dtype == dtype else v.astype(leaf.dtype)
             args.append(obj)
-        args += [_lane(s_ref[0]), _lane(s_ref[1])]
-        outs = eval_lanes(closed, args, tile, any_lane=any_lane, unroll=settings_unroll(settings))
+        args += [_lane(px), _lane(py)]
+        outs = eval_lanes(closed, args, (th, tw), any_lane=any_lane, unroll=settings_unroll(settings))
         r = 0
         for o in outs:
             for x in o.reshape(-1):
                 x = jnp.asarray(x)
-                if x.dtype != dtype:
-                    x = x.astype(dtype)
-                o_ref[r] = jnp.broadcast_to(x, tile)
+                o_refs[r][...] = jnp.broadcast_to(x.astype(o_refs[r].dtype), (th, tw))
                 r += 1
 
     kwargs = {}
@@ -252,19 +254,33 @@ def _pallas(one, dyn, samples, settings, grid):
 
         kwargs["compiler_params"] = pltriton.CompilerParams(
             num_warps=PALLAS_NUM_WARPS, num_stages=1)
+    # one output array per output lane, in image layout: written once, no padding rows
+    out_shape = [jax.ShapeDtypeStruct((ty * th, tx * tw), o.dtype)
+                 for o in out_leaves for _ in range(int(np.prod(o.shape)))]
+    tile_spec = pl.BlockSpec((th, tw), lambda i, j: (i, j))
+    in_specs = [pl.BlockSpec((nparams,), lambda i, j: (0,))]
+    args = [pvec]
+    if not centres:
+        s = _to_tiles(samples, grid, (th, tw))  # [ty, tx, th, tw, 2]
+        s = jnp.moveaxis(jnp.moveaxis(s, -1, 0), 2, 3).reshape(2, ty * th, tx * tw)
+        in_specs.append(pl.BlockSpec((2, th, tw), lambda i, j: (0, i, j)))
+        args.append(s)
     call = pl.pallas_call(
         kernel,
-        out_shape=jax.ShapeDtypeStruct((rows_pad, ty * th, tx * tw), dtype),
+        out_shape=out_shape,
         grid=(ty, tx),
-        in_specs=[pl.BlockSpec((nparams,), lambda i, j: (0,)),
-                  pl.BlockSpec((2, th, tw), lambda i, j: (0, i, j))],
-        out_specs=pl.BlockSpec((rows_pad, th, tw), lambda i, j: (0, i, j)),
+        in_specs=in_specs,
+        out_specs=[tile_spec] * lanes_out,
         interpret=interpret,
         **kwargs,
     )
-    out = call(pvec, s)[:rows, :grid[0], :grid[1]].reshape(rows, -1).T  # [n, rows]
+    planes = [x[:rows, :cols].reshape(rows * cols) for x in call(*args)]
     res, r = [], 0
-    for sh, size in zip(out_leaves, sizes):
-        res.append(out[:, r:r + size].reshape((out.shape[0],) + sh.shape).astype(sh.dtype))
+    for sh in out_leaves:
+        size = int(np.prod(sh.shape))
+        if sh.shape == ():
+            res.append(planes[r])
+        else:
+            res.append(jnp.stack(planes[r:r + size], axis=-1).reshape((rows * cols,) + sh.shape))
         r += size
     return jax.tree_util.tree_unflatten(out_tree, res)

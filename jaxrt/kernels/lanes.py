@@ -614,7 +614,11 @@ def _while(eqn, ins, ctx):
     cn, bn = p["cond_nconsts"], p["body_nconsts"]
     cond_j, body_j = p["cond_jaxpr"], p["body_jaxpr"]
     cconsts, bconsts, init = ins[:cn], ins[cn:cn + bn], ins[cn + bn:]
-    avals = [v.aval for v in eqn.outvars]
+    used = getattr(ctx, "used_outputs", None) or [True] * len(init)
+    cond_j, body_j, cconsts, bconsts, keep = _prune_loop(cond_j, body_j, cconsts, bconsts, used)
+    full_init = init
+    init = [x for x, k in zip(init, keep) if k]
+    avals = [v.aval for v, k in zip(eqn.outvars, keep) if k]
     block = ctx.block
     # loop state: every lane of every carried value as a [block] array (bools as int32,
     # which every backend carries through loops)
@@ -675,7 +679,36 @@ def _while(eqn, ins, ctx):
         flat, _ = lax.while_loop(cond_fn, body_fn, (flat0, active0))
     finally:
         ctx.loop_depth -= 1
-    return unpack(flat)
+    results = iter(unpack(flat))
+    # carries that nothing reads keep their initial value (placeholders)
+    return [next(results) if k else x for x, k in zip(full_init, keep)]
+
+
+def _prune_loop(cond_j, body_j, cconsts, bconsts, used):
+    """Drop the carries of a while loop that neither its used results nor its condition
+    need (a march that also tracks a closest approach nobody reads, say). Returns the
+    pruned (cond, body, cond consts, body consts) and the mask of kept carries."""
+    from jax._src.interpreters import partial_eval as pe
+
+    n = len(used)
+    nc, nb = len(cconsts), len(bconsts)
+    if cond_j.consts or body_j.consts:
+        return cond_j, body_j, cconsts, bconsts, [True] * n
+    _, cond_in = pe.dce_jaxpr(cond_j.jaxpr, [True])
+    keep = [bool(u) or bool(c) for u, c in zip(used, cond_in[nc:])]
+    while True:
+        _, body_in = pe.dce_jaxpr(body_j.jaxpr, keep)
+        new = [k or bool(b) for k, b in zip(keep, body_in[nb:])]
+        if new == keep:
+            break
+        keep = new
+    if all(keep):
+        return cond_j, body_j, cconsts, bconsts, keep
+    cond_new, cond_used = pe.dce_jaxpr(cond_j.jaxpr, [True], instantiate=[True] * nc + keep)
+    body_new, body_used = pe.dce_jaxpr(body_j.jaxpr, keep, instantiate=[True] * nb + keep)
+    cond_new = jcore.ClosedJaxpr(cond_new, ())
+    body_new = jcore.ClosedJaxpr(body_new, ())
+    return cond_new, body_new, cconsts, bconsts, keep
 
 
 def _cond(eqn, ins, ctx):
@@ -805,7 +838,20 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
         raise Unsupported(f"arity mismatch: {len(args)} arguments for {len(jaxpr.invars)} inputs")
     for v, x in zip(jaxpr.invars, args):
         write(v, x)
-    for eqn in jaxpr.eqns:
+    # liveness: skip equations whose results are unused, and tell `while` which of its
+    # results are used (it then carries only what they and its condition need)
+    live = {v for v in jaxpr.outvars if not isinstance(v, jcore.Literal)}
+    used_eqns = []
+    for eqn in reversed(jaxpr.eqns):
+        used = [v in live for v in eqn.outvars]
+        if any(used) or eqn.effects:
+            live.update(v for v in eqn.invars if not isinstance(v, jcore.Literal))
+        used_eqns.append(used)
+    used_eqns.reverse()
+    for eqn, used in zip(jaxpr.eqns, used_eqns):
+        if not (any(used) or eqn.effects):
+            continue
+        ctx.used_outputs = used
         ins = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
         if name in _ELEMENTWISE:
