@@ -27,8 +27,7 @@ def _camera(kind, eye, target, size):
 @pytest.mark.parametrize("kind,shadows,spp,dtype", [
     ("perspective", "hard", 1, "float32"),
     ("perspective", "soft", 4, "float32"),
-    ("orthographic", "hard", 1, "float32"),
-    ("perspective", "hard", 1, "float64"),
+    ("orthographic", "hard", 1, "float64"),
 ])
 def test_lambert_sphere_seen_from_inside_has_radiance_albedo(kind, shadows, spp, dtype):
     """Radiance at a point p of the sphere: ρ/π · (π / |p − c|²) · cos 0 = ρ / r²
