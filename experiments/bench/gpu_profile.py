@@ -1,0 +1,75 @@
+"""Where the time of a GPU render goes: device time per kernel, from JAX's profiler.
+
+    python experiments/bench/gpu_profile.py [--variant pallas-fast] [--calls 20]
+
+Renders the Warp benchmark scene with one variant of `configs/experiments/warp_bench.toml`
+under `jax.profiler.trace`, then reads the trace back (`jax.profiler.ProfileData`) and
+prints the device time of every kernel, summed over the calls and divided by their
+number, largest first: the fused render kernel and the XLA kernels around it.
+"""
+
+import argparse
+import glob
+import os
+import tempfile
+import tomllib
+from collections import defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", default=str(ROOT / "configs/experiments/warp_bench.toml"))
+    ap.add_argument("--variant", action="append")
+    ap.add_argument("--calls", type=int, default=20)
+    ap.add_argument("--width", type=int)
+    ap.add_argument("--height", type=int)
+    args = ap.parse_args(argv)
+    cfg = tomllib.loads(Path(args.config).read_text())
+
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import jaxrt as jr
+    from jaxrt.render import _cast, _render
+
+    section = cfg["gpu" if jax.default_backend() == "gpu" else "cpu"]
+    scene, camera, base = jr.config.load(ROOT / cfg["scene"], width=args.width or section["width"],
+                                         height=args.height or section["height"])
+    dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
+    for name in args.variant or ["pallas-fast"]:
+        overrides = dict(cfg["variants"][name])
+        overrides.pop("kernel", None)
+        settings = base.replace(**overrides)
+        f = jax.jit(lambda d: _render.__wrapped__(*eqx.combine(d, static), settings))
+        f = f.lower(dyn).compile()
+        f(dyn).rgb.block_until_ready()
+        tmp = tempfile.mkdtemp()
+        with jax.profiler.trace(tmp):
+            for _ in range(args.calls):
+                out = f(dyn)
+            out.rgb.block_until_ready()
+        path = glob.glob(os.path.join(tmp, "**", "*.xplane.pb"), recursive=True)[0]
+        pd = jax.profiler.ProfileData.from_file(path)
+        for plane in pd.planes:
+            if not (plane.name.startswith("/device:GPU") or (
+                    jax.default_backend() == "cpu" and plane.name.startswith("/host:CPU"))):
+                continue
+            for line in plane.lines:
+                totals, counts = defaultdict(float), defaultdict(int)
+                for ev in line.events:
+                    totals[ev.name] += ev.duration_ns
+                    counts[ev.name] += 1
+                if not totals:
+                    continue
+                total = sum(totals.values()) / args.calls / 1e3
+                print(f"\n{name} | {plane.name} | {line.name}: {total:.1f} us per render")
+                for k, v in sorted(totals.items(), key=lambda kv: -kv[1])[:12]:
+                    print(f"  {v / args.calls / 1e3:9.1f} us  x{counts[k] / args.calls:<5.1f} {k[:90]}")
+
+
+if __name__ == "__main__":
+    main()
