@@ -115,22 +115,32 @@ def test_plane_matches_ray_plane_intersection(precision):
     n, offset = unit([0.2, 1.0, -0.3]), 0.4
     rng = np.random.default_rng(1)
     # Origins above the plane, directions from steep to 6° (float32 default) or 0.1°
-    # (float64) above grazing, and some pointing away.
-    m = 150
+    # (float64) above grazing, and some pointing away. In float32 at the default budget
+    # of 128 steps, rays between 0.5° and 6° may run out of steps (sphere tracing needs
+    # ~ln(h/ε)/sin θ of them): they must say so, or hit accurately (or miss beyond
+    # max_distance).
+    m = 170
     o = rng.uniform(-3, 3, (m, 3))
     o = o + (offset - o @ n + rng.uniform(0.05, 3.0, m))[:, None] * n
     low = 6.0 if precision == "float32" else 0.1
-    elevation = np.radians(np.concatenate([rng.uniform(low, 90.0, m - 20), [low] * 5,
-                                           -rng.uniform(1.0, 90.0, 15)]))
+    elevation = np.radians(np.concatenate([rng.uniform(low, 90.0, m - 40), [low] * 5,
+                                           -rng.uniform(1.0, 90.0, 15), rng.uniform(low / 10, low, 20)]))
     tangent = unit(np.cross(n, random_directions(rng, m)))
     d = -np.sin(elevation)[:, None] * n + np.cos(elevation)[:, None] * tangent
     settings = DEFAULT if precision == "float32" else TIGHT
     h = run(sdf.Plane(n, offset), o, d, settings, getattr(jnp, precision))
     t_ref, hit_ref = np_plane_hit(o, d, n, offset)
     hit_ref &= t_ref < settings.max_distance
-    np.testing.assert_array_equal(h.hit, hit_ref)
     tol = 1e-4 if precision == "float32" else 1e-9
-    np.testing.assert_array_less(np.abs(h.t - t_ref)[hit_ref] / t_ref[hit_ref], tol)
+    sure = slice(0, m - 20)
+    np.testing.assert_array_equal(h.hit[sure], hit_ref[sure])
+    np.testing.assert_array_less(np.abs(h.t - t_ref)[sure][hit_ref[sure]] / t_ref[sure][hit_ref[sure]], tol)
+    grazing = slice(m - 20, m)
+    accurate = h.hit & hit_ref & (np.abs(h.t - t_ref) / t_ref < tol)
+    far = ~h.hit & ~hit_ref
+    assert np.all((h.exhausted | accurate | far)[grazing])
+    if precision == "float32":
+        assert accurate[grazing].any()
     t_jax, hit_jax = jax.vmap(jr.intersect_plane, (0, 0, None, None))(
         jnp.asarray(o), jnp.asarray(d), jnp.asarray(n), offset)
     np.testing.assert_array_equal(np.asarray(hit_jax), t_ref >= 0)
