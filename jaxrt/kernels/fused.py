@@ -44,6 +44,10 @@ UNROLL = 1
 #: "fused" on XLA: materialise function results outside loops (`lanes._barrier`).
 MATERIALIZE = True
 
+#: Pallas kernels use `lanes._fast_math` (sqrt via rsqrt; division by shared values as a
+#: multiplication): images agree with the exact forms to a few ulps.
+PALLAS_FAST_MATH = True
+
 #: Rays per Pallas program instance when batch_size does not say otherwise: the probe
 #: in shared/bench/pallas_probe.py found blocks of 256 fastest on an H100.
 PALLAS_BLOCK = 256
@@ -240,7 +244,8 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
                 obj[idx] = v if leaf.dtype == dtype else v.astype(leaf.dtype)
             args.append(obj)
         args += [_lane(px), _lane(py)]
-        outs = eval_lanes(closed, args, (th, tw), any_lane=any_lane, unroll=settings_unroll(settings))
+        outs = eval_lanes(closed, args, (th, tw), any_lane=any_lane,
+                          unroll=settings_unroll(settings), fast_math=PALLAS_FAST_MATH)
         r = 0
         for o in outs:
             for x in o.reshape(-1):

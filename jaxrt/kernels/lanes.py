@@ -111,7 +111,8 @@ def _broadcast(x, block, dtype):
 class _Ctx:
     """Evaluation context: block size, the any-lane reduction and the loop unroll."""
 
-    def __init__(self, block, any_lane, unroll, materialize=False):
+    def __init__(self, block, any_lane, unroll, materialize=False, fast_math=False):
+        self.fast_math = fast_math
         self.block = block
         self.any_lane = any_lane
         self.unroll = unroll
@@ -146,6 +147,10 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
         with jax.ensure_compile_time_eval():
             out = prim.bind(*[jnp.asarray(x) for x in lanes], **params)
         return np.asarray(out).astype(out_dtype)[()]
+    if ctx.fast_math and out_dtype == np.dtype(np.float32):
+        fast = _fast_math(prim.name, lanes, ctx)
+        if fast is not None:
+            return fast
     shapes = {_lane_shape(x) for x in lanes}
     shape = max(shapes, key=len)
     ops = []
@@ -156,6 +161,25 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
             x = jnp.broadcast_to(x, shape)
         ops.append(x)
     return prim.bind(*ops, **params)
+
+
+def _fast_math(name, lanes, ctx):
+    """Cheaper float32 forms for a GPU kernel (within a few ulps of the exact ones):
+    sqrt(x) as x·rsqrt(x) (one special-function instruction instead of IEEE sqrt), and
+    division of per-ray values by a value shared by all rays (a scene parameter, say a
+    Lipschitz factor) as multiplication by its reciprocal, computed once."""
+    if name == "sqrt":
+        (x,) = lanes
+        if _lane_shape(x) == ():
+            return None
+        ok = x > 0.0
+        return jnp.where(ok, x * lax.rsqrt(jnp.where(ok, x, 1.0)), jnp.zeros_like(x))
+    if name == "div":
+        x, y = lanes
+        if _lane_shape(x) == () or _lane_shape(y) != ():
+            return None
+        return x * (1.0 / jnp.asarray(y, jnp.float32))
+    return None
 
 
 def _elementwise(eqn, ins, ctx):
@@ -869,7 +893,8 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
     return [read(v) for v in jaxpr.outvars]
 
 
-def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False):
+def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
+               fast_math=False):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -882,8 +907,10 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False):
       unroll: march steps per test of the block's loop condition.
       materialize: compute the results of the program's function calls (outside
         loops) once, behind an optimization barrier (see `_barrier`; for XLA on CPUs).
+      fast_math: float32 sqrt and division by shared values in cheaper forms, within a
+        few ulps (`_fast_math`; for GPU kernels).
 
     Returns: one object array of lanes per output of the program.
     """
-    ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize)
+    ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize, fast_math)
     return _eval_closed(closed, list(args), ctx)
