@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 
 from .bsdf.scattering import reflect, refract
+from .heightfield import HeightField
 from .lights import shadow_ray
 from .trace import hit_epsilon, sphere_trace, surface_normal
 from .vecmath import dot, safe_div, to_local
@@ -80,26 +81,28 @@ def surface_distance(scene, which, x):
     return select(values, which)
 
 
-def spawn_origin(scene, which, p, n, offset):
-    """Origin of a secondary ray that leaves surface `which` at p on the side of the
+def spawn_origin(scene, which, p, n, offset, side):
+    """Origin of a secondary ray that leaves surface `which` at p along the side of the
     unit normal n (n points to where the ray goes: outward for a reflection seen from
-    outside, inward for a refraction into the object, …).
+    outside, inward for a refraction into the object, …); side = +1 if that is the
+    outside of the surface, −1 the inside.
 
     x₀ = p + offset · n, then SPAWN_STEPS Newton steps towards the level set
-    f(x) = s · offset of the surface's distance bound f (s = +1 outside, −1 inside,
-    the side n points to):  x ← x − (f(x) − s · offset) ∇f / |∇f|².
+    f(x) = side · offset of the surface's distance bound f:
+    x ← x − (f(x) − side · offset) ∇f / |∇f|².
     Along a smooth surface x₀ is already there and the steps change nothing; near an
     edge or a corner, where another face of the same surface is nearer than `offset`,
     they push the origin out of that face's ε band too, where the ray would otherwise
     re-hit it at t = 0. The correction carries no gradient (the origin's gradient is
-    that of p).
+    that of p). p, n, offset and side may carry a leading batch axis (several origins
+    from one hit share one compiled step).
     """
+    if p.ndim > 1:
+        return jax.vmap(lambda *a: spawn_origin(scene, which, *a))(p, n, offset, side)
     x0 = p + offset * n
     x = jax.lax.stop_gradient(x0)
     f_and_grad = jax.value_and_grad(lambda q: surface_distance(scene, which, q))
-    _, g0 = f_and_grad(jax.lax.stop_gradient(p))
-    side = jnp.where(dot(n, g0) >= 0.0, 1.0, -1.0).astype(p.dtype)
-    target = side * jax.lax.stop_gradient(offset)
+    target = jax.lax.stop_gradient(side * offset)
     for _ in range(SPAWN_STEPS):
         f, g = f_and_grad(x)
         x = x - safe_div(f - target, dot(g, g)) * g
@@ -218,6 +221,9 @@ def visibility(scene, origin, wi, distance, settings):
     t_max = jnp.minimum(distance, settings.shadow_max_distance or settings.max_distance)
     quick = settings.replace(newton_steps=0)
     for field in scene.heightfields:
+        # Only whether it crosses: no interpolation or refinement of the crossing.
+        field = HeightField(field.height, field.material, field.max_steps, field.min_step,
+                            field.rel_step, interpolate=False, refine_steps=0)
         blocked = field.intersect(origin, wi, quick, t_max=t_max).hit
         visible = jnp.where(blocked, 0.0, visible)
     return visible
@@ -332,9 +338,21 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
 
     offset = spawn_offset(p, settings, hit_epsilon(settings, hit.t, cone))
     spawning = spawn and bool(tree.branches)
-    above = None  # origin on the viewer's side: shadow and reflected rays
+    # Origins of secondary rays: on the viewer's side (shadow and reflected rays; the
+    # outside iff the ray arrived from outside) and on the far side (refracted rays).
+    sides = []
     if tree.direct or (spawning and "reflect" in tree.branches):
-        above = spawn_origin(scene, hit.surface, p, n, offset)
+        sides.append(1.0)
+    if spawning and "transmit" in tree.branches:
+        sides.append(-1.0)
+    origins = {}
+    if sides:
+        toward = jnp.asarray(sides, dtype)
+        outside = jnp.where(entering, toward, -toward)
+        starts = spawn_origin(scene, hit.surface, jnp.broadcast_to(p, (len(sides), 3)),
+                              toward[:, None] * n, jnp.broadcast_to(offset, (len(sides),)), outside)
+        origins = {side: starts[k] for k, side in enumerate(sides)}
+    above, below = origins.get(1.0), origins.get(-1.0)
     if tree.direct:
         local = direct_lighting(scene, p, n, wo, material, settings, colour, active=found,
                                 origin=above)
@@ -356,12 +374,12 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
     children = {}
     if spawning:
         children = _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p,
-                          n_out, n, entering, material, throughput, above, offset)
+                          n_out, n, entering, material, throughput, above, below)
     return Shaded(throughput * radiance, children, aovs)
 
 
 def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out, n, entering,
-           material, throughput, above, offset):
+           material, throughput, above, below):
     dtype = p.dtype
     wo = -ray.direction
     zeros = jnp.zeros(3, dtype)
@@ -386,7 +404,6 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
         # Entering: the medium of the material; leaving: vacuum.
         sigma = jnp.where(entering, colour(inside), 0.0)
         weight = jnp.where(valid, throughput * colour(c_trans), 0.0)
-        below = spawn_origin(scene, hit.surface, p, -n, offset)
         children["transmit"] = Ray(below, wt, cone, weight, sigma,
                                    found & spawns & valid)
     return children
