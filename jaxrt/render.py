@@ -44,7 +44,7 @@ def render(scene, camera, settings=None):
 @eqx.filter_jit
 def _render(scene, camera, settings):
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
-    origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
+    h, w, spp = camera.height, camera.width, settings.spp
 
     def kernel(ray, scene=scene, camera=camera):
         o, d, cone, xy = ray
@@ -53,20 +53,34 @@ def _render(scene, camera, settings):
             out = silhouette.blend(scene, camera, xy, out, settings)
         return out
 
-    n = samples.shape[0]
-    if settings.backend != "jax":
-        out = _fused(scene, camera, samples, settings, kernel)
-    elif settings.batch_size is None or settings.batch_size >= n:
-        out = jax.vmap(kernel)((origins, directions, cones, samples))
-    else:
-        out = jax.lax.map(kernel, (origins, directions, cones, samples),
-                          batch_size=settings.batch_size)
-    h, w, spp = camera.height, camera.width, settings.spp
+    def trace_rows(params, samples, rows):
+        """Every sample of `rows` image rows (all of them, or one device's band)."""
+        scene, camera = params
+        if settings.backend != "jax":
+            return _fused(scene, camera, samples, settings, kernel, rows, centres=rows == h)
+        origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
+        rays = (origins, directions, cones, samples)
+        n = samples.shape[0]
+        if settings.batch_size is None or settings.batch_size >= n:
+            return jax.vmap(lambda r: kernel(r, scene, camera))(rays)
+        return jax.lax.map(lambda r: kernel(r, scene, camera), rays,
+                           batch_size=settings.batch_size)
+
+    if settings.devices == 1:
+        out = trace_rows((scene, camera), samples, h)
+    else:  # bands of rows on several devices (jaxrt.sharding)
+        from .sharding import local_devices, shard_rows
+
+        out = shard_rows(trace_rows, (scene, camera), samples, h, local_devices(settings.devices))
     out = {k: v.reshape((h, w, spp) + v.shape[1:]).mean(axis=2) for k, v in out.items()}
+    if settings.devices != 1:  # keep the image in bands on the devices
+        from .sharding import local_devices, rows_sharded
+
+        out = rows_sharded(out, local_devices(settings.devices))
     return Image(**out)
 
 
-def _fused(scene, camera, samples, settings, kernel):
+def _fused(scene, camera, samples, settings, kernel, rows, centres):
     """The per-sample kernel run lane-wise by `jaxrt.kernels` (backend "fused"/"pallas"/
     "auto"); gradients through the vmapped path above."""
     from .kernels.fused import map_samples
@@ -79,9 +93,9 @@ def _fused(scene, camera, samples, settings, kernel):
         return jax.lax.map(lambda r: kernel(r, *params), rays,
                            batch_size=min(settings.batch_size or s.shape[0], s.shape[0]))
 
-    grid = (camera.height, camera.width * settings.spp)  # samples are pixel-major
+    grid = (rows, camera.width * settings.spp)  # samples are pixel-major
     return map_samples(one, (scene, camera), samples, settings, reference, grid=grid,
-                       centres=settings.spp == 1)  # pixel_samples gives centres at spp 1
+                       centres=centres and settings.spp == 1)  # pixel_samples: centres at spp 1
 
 
 def _dtype(settings):

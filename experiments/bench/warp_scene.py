@@ -167,7 +167,7 @@ def _set_kernel_knobs(knobs):
 
     fused.PALLAS_NUM_WARPS = knobs.get("num_warps", 4)
     fused.UNROLL = knobs.get("unroll", 1)
-    fused.PALLAS_FAST_MATH = knobs.get("fast_math", True)
+    fused.PALLAS_FAST_MATH = knobs.get("fast_math", False)
 
 
 def _render_at(scene, camera, settings, dx, dy):
