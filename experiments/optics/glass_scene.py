@@ -51,7 +51,8 @@ def load_config(path, quick=False):
 def terrain_heights(cfg):
     """[nz, nx] heights of the terrain: `terrain_waves` sine waves of random direction
     and phase, wavelengths from `terrain_wavelengths`, amplitude ∝ wavelength (a 1/f
-    spectrum), scaled to `terrain_amplitude`; deterministic from `seed`."""
+    spectrum), scaled to `terrain_amplitude`, rising into hills behind the objects
+    (`terrain_rise`); deterministic from `seed`."""
     rng = np.random.default_rng(int(cfg["seed"]))
     x0, x1, z0, z1 = cfg["terrain_extent"]
     nx, nz = cfg["terrain_samples"]
@@ -64,7 +65,11 @@ def terrain_heights(cfg):
         k = 2 * np.pi / wavelength
         h += wavelength * np.sin(k * (np.cos(angle) * x + np.sin(angle) * z) + phase)
     h = h / np.abs(h).max() * float(cfg["terrain_amplitude"])
-    return h
+    # Hills behind the objects: a smooth rise from z = rise[0] to z = rise[1].
+    z_lo, z_hi, height = cfg["terrain_rise"]
+    s = np.clip((z - z_lo) / (z_hi - z_lo), 0.0, 1.0)
+    ridge = 1.0 + 0.6 * np.sin(0.45 * x + 1.0) * np.cos(0.3 * x)  # uneven hill tops
+    return h * (1.0 + 3.0 * s) + height * ridge * s * s * (3.0 - 2.0 * s)
 
 
 def ior(value):
