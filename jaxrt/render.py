@@ -7,6 +7,7 @@ import jax.numpy as jnp
 from . import silhouette
 from .camera import pixel_samples
 from .integrator import trace_radiance
+from .kernels.fused import resolve_backend
 from .settings import RenderSettings
 
 
@@ -56,7 +57,7 @@ def _render(scene, camera, settings):
     def trace_rows(params, samples, rows):
         """Every sample of `rows` image rows (all of them, or one device's band)."""
         scene, camera = params
-        if settings.backend != "jax":
+        if resolve_backend(settings.backend) != "jax":
             return _fused(scene, camera, samples, settings, kernel, rows, centres=rows == h)
         origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
         rays = (origins, directions, cones, samples)

@@ -60,10 +60,11 @@ class RenderSettings:
                        stops as soon as its rays are done (None: whole image at once).
       backend          how the per-ray program is batched: "jax" (vmap over rays,
                        default, the reference), "fused" (the program scalarised into
-                       one lane per ray, `jaxrt.kernels`: same image, fewer and fused
-                       ops; the fast path on CPUs), "pallas" (the same lanes inside one
+                       one lane per ray and run by XLA in tiles, `jaxrt.kernels`: same
+                       image; on CPUs sometimes faster, sometimes slower than "jax"),
+                       "pallas" (the same lanes inside one
                        Pallas GPU kernel; interpret mode without a GPU) or "auto"
-                       (pallas on a GPU, fused elsewhere). Gradients always come from
+                       (pallas on a GPU, jax elsewhere). Gradients always come from
                        the "jax" program.
       devices          local devices to shard the image's rows over (`jaxrt.sharding`;
                        1: no sharding, default; 0: all local devices).
@@ -169,6 +170,21 @@ class RenderSettings:
         """A copy with some dials changed (validated)."""
         return dataclasses.replace(self, **changes)
 
+    @classmethod
+    def preset(cls, name, base=None, **changes):
+        """Named points on the speed/accuracy front (`PRESETS`; measured by
+        experiments/speed_accuracy.py): "fast", "balanced" or "reference".
+
+        A preset sets only accuracy/speed dials (epsilons, budgets, Newton steps,
+        samples, precision, backend); the dials that describe a scene's look (shadow
+        mode, penumbra, max_distance, max_depth, ...) come from `base` (default:
+        `RenderSettings()`, or a scene file's settings). `changes` are applied last.
+        """
+        if name not in PRESETS:
+            raise ValueError(f"RenderSettings.preset({name!r}): expected one of {sorted(PRESETS)}")
+        base = cls() if base is None else base
+        return base.replace(**{**PRESETS[name], **changes})
+
 
 def _is_int(x):
     return isinstance(x, int) and not isinstance(x, bool)
@@ -176,3 +192,21 @@ def _is_int(x):
 
 def _is_num(x):
     return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x
+
+
+#: The presets of `RenderSettings.preset`: accuracy/speed dials only. Their errors,
+#: measured against a float64 reference (tight epsilon, large budgets, 16 samples per
+#: pixel) on the study's scenes, are in experiments/speed_accuracy.py's results; the
+#: test tests/test_presets.py checks the claims below on a small scene.
+#:   fast       previews: pixel-footprint epsilon, small budgets, no Newton polish
+#:              (no hit-point gradients), the Pallas kernel on a GPU.
+#:   balanced   the default quality at the fused speed: tight epsilon, one Newton step.
+#:   reference  converged images for tests and error curves (float64, slow).
+PRESETS = {
+    "fast": dict(hit_epsilon=1e-4, pixel_epsilon=1.0, max_steps=96, newton_steps=0,
+                 shadow_steps=32, spp=1, dtype="float32", backend="auto"),
+    "balanced": dict(hit_epsilon=1e-4, pixel_epsilon=0.0, max_steps=128, newton_steps=1,
+                     shadow_steps=64, spp=1, dtype="float32", backend="auto"),
+    "reference": dict(hit_epsilon=1e-7, pixel_epsilon=0.0, max_steps=2048, newton_steps=2,
+                      shadow_steps=2048, spp=16, dtype="float64", backend="jax"),
+}

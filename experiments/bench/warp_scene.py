@@ -51,6 +51,12 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     cfg = tomllib.loads(Path(args.config).read_text())
+    cpu_devices = cfg["cpu"].get("devices", 1)
+    if cpu_devices > 1 and "jax" not in sys.modules:
+        # one XLA CPU device per core, so that RenderSettings(devices=...) can shard the
+        # image over the cores (must be set before jax is imported)
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                                   f" --xla_force_host_platform_device_count={cpu_devices}")
     import jax
 
     jax.config.update("jax_enable_x64", True)  # for the float64 reference only
