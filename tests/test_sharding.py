@@ -1,0 +1,80 @@
+"""jaxrt.sharding: a render sharded over several devices is the unsharded render.
+
+XLA's device count must be set before jax is imported, so the checks run in a
+subprocess with four virtual CPU devices (XLA_FLAGS=--xla_force_host_platform_device_count=4).
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+SCRIPT = textwrap.dedent(
+    """
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+    import jaxrt as jr
+    from jaxrt.sharding import shard_views
+
+    assert len(jax.devices()) == 4, jax.devices()
+    S = jr.sdf
+    scene = jr.Scene(
+        surface=S.Union(S.Translate(S.Sphere(radius=0.6, material=0), offset=(0.0, 0.6, 0.0)),
+                        S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=1)),
+        materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2)), jr.bsdf.Lambert(albedo=(0.6, 0.6, 0.6))],
+        lights=[jr.PointLight(position=(2.0, 4.0, 3.0), intensity=(30.0, 30.0, 30.0))],
+        background=(0.1, 0.1, 0.15))
+    camera = jr.PerspectiveCamera(eye=(0.0, 1.5, 3.5), target=(0.0, 0.5, 0.0), up=(0.0, 1.0, 0.0),
+                                  fov=45.0, width=12, height=8)
+    base = jr.RenderSettings(shadows="soft", batch_size=32, dtype="float64")
+    one = jr.render(scene, camera, base)
+    for devices in (4, 3):   # 8 rows on 4 devices; on 3 (uneven: padded)
+        img = jr.render(scene, camera, base.replace(devices=devices))
+        for field in ("rgb", "depth", "normal", "albedo", "steps", "coverage"):
+            a, b = np.asarray(getattr(img, field)), np.asarray(getattr(one, field))
+            assert np.allclose(a, b, rtol=1e-12, atol=1e-12), (devices, field, np.abs(a - b).max())
+    img = jr.render(scene, camera, base.replace(devices=4))
+    assert len(img.rgb.sharding.device_set) == 4, img.rgb.sharding
+    try:
+        jr.render(scene, camera, base.replace(devices=5))
+    except ValueError as e:
+        assert "devices = 5" in str(e) and "4 local devices" in str(e), e
+    else:
+        raise AssertionError("devices=5 on 4 devices did not raise")
+
+    # views sharded for fitting: the summed loss and its gradient are the unsharded ones
+    def loss(p, view):
+        return jnp.sum((jnp.sin(view * p[0]) + p[1]) ** 2)
+    views = jnp.linspace(0.0, 1.0, 8).reshape(8, 1)
+    p = jnp.array([1.3, -0.2])
+    want = sum(loss(p, v) for v in views)
+    got = shard_views(loss, p, views)
+    assert np.allclose(got, want), (got, want)
+    g_want = jax.grad(lambda q: sum(loss(q, v) for v in views))(p)
+    g_got = jax.grad(lambda q: shard_views(loss, q, views))(p)
+    assert np.allclose(g_got, g_want), (g_got, g_want)
+    print("OK")
+    """
+)
+
+
+def test_sharded_render_is_the_unsharded_render(tmp_path):
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    script = tmp_path / "sharded.py"
+    script.write_text(SCRIPT)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env,
+                          timeout=600)
+    assert proc.returncode == 0 and "OK" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-3000:]
+
+
+def test_devices_setting_is_validated():
+    import jaxrt as jr
+
+    with pytest.raises(ValueError, match="devices"):
+        jr.RenderSettings(devices=-1)
