@@ -17,10 +17,17 @@ no dispersive material, one RGB band. Rays whose parent missed, hit a material t
 does not spawn them, or underwent total internal reflection are dead: they keep their
 slot in the batch but stop at their first step and add nothing.
 
-Precision (notes, "Precision"): a secondary ray starts `spawn_offset` off the surface,
-on the side it leaves (the viewer's side for reflection, the far side for refraction),
-so that it neither re-hits the surface it leaves nor starts on the wrong side; rays that
-start inside an object march |f| (`sphere_trace`) and find where they leave it.
+intersectScene is `intersect_scene`: the sphere-traced SDF `scene.surface` and every
+height field of `scene.heightfields` (marched as in the notes); the nearest hit wins.
+
+Precision (notes, "Precision"): a secondary ray starts `spawn_offset` = ray_offset ·
+(ε + 8 ulp·max|pᵢ|) off the surface, on the side it leaves (the viewer's side for
+reflection and shadow rays, the far side for refraction), settled by `spawn_origin` on
+the level set f = ±offset so that near edges and corners it also clears the ε band of
+the neighbouring faces: it neither re-hits the surface it leaves nor starts on the
+wrong side (tests/test_precision.py: no re-hit among ~4·10⁵ rays spawned from
+spheres, boxes and tori at scales 10⁻³–10³ in float32). Rays that start inside an object march
+|f| (`sphere_trace`), so the same ε finds where they leave it.
 
 Media: a refracted ray that enters a `Dielectric` carries its absorption σ_a until it
 leaves, and every segment it travels is weighted by exp(−σ_a t) (Beer–Lambert). The
@@ -43,10 +50,15 @@ from .vecmath import dot, safe_div, to_local
 
 
 def select(values, index):
-    """values[index] for a static list of equally shaped arrays and a traced index."""
-    if len(values) == 1:
-        return values[0]
-    return jnp.stack(values)[index]
+    """values[index] for a static list of equally shaped arrays and a traced index.
+
+    A chain of `where`s rather than a gather: the same under vmap, and a plain
+    elementwise program for the lane-wise backends (`jaxrt.kernels`).
+    """
+    out = values[0]
+    for k in range(1, len(values)):
+        out = jnp.where(index == k, values[k], out)
+    return out
 
 
 def spawn_offset(p, settings, epsilon=None):
@@ -154,7 +166,7 @@ def _index_table(materials, predicate, material):
         k += int(bool(predicate(m)))
     if len(set(table)) == 1:
         return table[0]
-    return jnp.asarray(table, jnp.int32)[material]
+    return select([jnp.int32(k) for k in table], material)
 
 
 def _select_material(materials, predicate, fn, default, material):

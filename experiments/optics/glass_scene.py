@@ -159,6 +159,7 @@ def run(cfg, out_dir):
             "wavelengths": tree.wavelengths,
             "mean_rgb": float(rgb.mean()),
         })
+        print(f"  depth {depth}: compile {compile_s:.1f} s, render {min(times):.2f} s", flush=True)
     jr.io.write_exr(out_dir / "glass_scene.exr", image)
     deepest = images[-1]
     for row, rgb in zip(rows, images):
