@@ -46,8 +46,9 @@ class RenderSettings:
                        (None: max_distance); towards point lights at the light.
       max_depth        Whitted recursion depth (reflected/refracted rays); only used
                        when the scene has specular materials.
-      ray_offset       secondary rays start ray_offset · (ε + 1e-6·|p|) off the surface
-                       (multiples of the hit epsilon plus float32 precision of p).
+      ray_offset       secondary rays start ray_offset · (ε + 8 ulp·max|pᵢ|) off the
+                       surface (multiples of the hit epsilon plus the rounding error of
+                       p; `integrator.spawn_offset`); must exceed 1 to leave the ε band.
     Sampling
       spp              samples per pixel, stratified (N-rooks) with a fixed seed,
                        averaged with a box filter; 1 = pixel centres.
