@@ -349,3 +349,22 @@ def test_heightfield_in_a_scene_matches_the_sdf_plane():
     np.testing.assert_allclose(np.asarray(b.depth)[hit], np.asarray(a.depth)[hit], atol=1e-6)
     err = np.abs(np.asarray(b.rgb) - np.asarray(a.rgb)).max(axis=-1)
     assert np.mean(err < 1e-4) > 0.97, np.sort(err.ravel())[-5:]
+
+
+@pytest.mark.slow
+def test_glass_scene_experiment_quick(tmp_path):
+    """experiments/optics/glass_scene.py --quick: finite images, a ray tree that doubles
+    per level, and an image that moves towards the deepest one as depth grows."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments/optics/glass_scene.py"
+    spec = importlib.util.spec_from_file_location("glass_scene", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    results = module.main(["--quick", "--out", str(tmp_path)])
+    rows = results["depths"]
+    assert [r["ray_slots"] for r in rows] == [2 ** (r["max_depth"] + 1) - 1 for r in rows]
+    assert rows[-1]["mean_abs_diff_to_deepest"] == 0.0 and rows[0]["mean_abs_diff_to_deepest"] > 0.0
+    for name in ("glass_scene_depths.png", "glass_scene.exr", "results.json", "config.json"):
+        assert (tmp_path / name).exists()
