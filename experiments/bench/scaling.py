@@ -230,12 +230,15 @@ def _depth(cfg, section):
 
 
 def _showcase(cfg, section):
+    import jax
+
     import jaxrt as jr
 
     path = ROOT / "jaxrt/data/showcase.toml"
     scene, camera, base = jr.config.load(path, width=cfg["size"][0], height=cfg["size"][1])
     rows = []
-    for backend in cfg["backends"]:
+    backends = [b for b in cfg["backends"] if b != "pallas" or jax.default_backend() == "gpu"]
+    for backend in backends:
         tl, tc, t, _ = measure(scene, camera, base.replace(backend=backend), section["repeats"])
         rows.append(dict(scene="showcase", backend=backend, width=cfg["size"][0],
                          height=cfg["size"][1], trace_lower_s=tl, xla_compile_s=tc, render_ms=1e3 * t))
