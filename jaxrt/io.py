@@ -20,9 +20,10 @@ import tempfile
 import zlib
 from collections.abc import Callable, Mapping
 
-import colour
 import numpy as np
 import OpenEXR
+
+from ._colour import colour
 
 
 class JaxrtIOError(ValueError):
@@ -198,7 +199,7 @@ def srgb_encode(x) -> np.ndarray:
 
     Evaluated by colour-science (`colour.cctf_encoding(x, function="sRGB")`); float64.
     """
-    return np.asarray(colour.cctf_encoding(np.asarray(x, dtype=np.float64), function="sRGB"))
+    return np.asarray(colour().cctf_encoding(np.asarray(x, dtype=np.float64), function="sRGB"))
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:

@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._colour import colour as _colour
 from .vecmath import safe_div, safe_sqrt
 
 #: The visible range that wavelengths are sampled from (nm).
@@ -88,7 +89,7 @@ def sample_wavelengths(n, offset=0.5, dtype=None):
 @functools.lru_cache(maxsize=None)
 def _tables():
     """1 nm tables over 360–830 nm: wavelengths, CMFs [.,3], D65 [.], basis [.,3], M, X_w."""
-    import colour  # imported here: colour-science is slow to import and needed only here
+    colour = _colour()  # imported here: colour-science is slow to import and needed only here
 
     shape = colour.SpectralShape(360, 830, 1)
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
