@@ -41,6 +41,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .bsdf.scattering import reflect, refract
 from .heightfield import HeightField
@@ -424,6 +425,9 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
 def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):
     """Radiance added by each level [depth + 1, channels] of one camera ray's tree, and
     the AOVs of its first hit."""
+    if settings.recursion == "scan" and tree.depth > 0:
+        return _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour,
+                                channels, wavelength)
     rays = jax.tree_util.tree_map(lambda x: x[None], camera_ray(origin, direction, cone, channels))
     levels = []
     aovs = None
@@ -443,6 +447,50 @@ def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels
             rays = jax.tree_util.tree_map(
                 lambda *xs: jnp.stack(xs, axis=1).reshape((-1,) + xs[0].shape[1:]), *children)
     return jnp.stack(levels), aovs
+
+
+def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):
+    """`_trace_tree` as one `lax.scan` over the slots of the tree (settings.recursion =
+    "scan").
+
+    The tree is stored in heap order: slot 0 is the camera ray and the b children of
+    slot i are slots b·i + 1 … b·i + b, so level k occupies slots Σ_{j<k} b^j onwards
+    (the same static tree as the unrolled levels). Step i shades slot i and writes its
+    children after it; leaves (the last level) write into b scratch slots at the end.
+    Every step is the same computation, compiled once whatever the depth; each traces
+    one ray per camera ray (a batch over the pixels under `render`'s vmap), and a slot
+    that is dead for every pixel of a tile costs one marching step.
+    """
+    b = len(tree.branches)
+    sizes = tree.rays_per_level()
+    slots = sum(sizes)
+    first_leaf = slots - sizes[-1]
+    level_of = jnp.asarray(np.repeat(np.arange(len(sizes)), sizes), jnp.int32)
+    root = camera_ray(origin, direction, cone, channels)
+    buffer = jax.tree_util.tree_map(
+        lambda x: jnp.zeros((slots + b,) + x.shape, x.dtype).at[0].set(x), root)
+
+    def shade(ray):
+        return shade_ray(scene, ray, settings, tree, colour, wavelength, True)
+
+    aov_shapes = jax.eval_shape(lambda r: shade(r).aovs, root)
+    aovs = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes)
+    levels = jnp.zeros((len(sizes), channels), origin.dtype)
+
+    def step(carry, i):
+        buffer, levels, aovs = carry
+        out = shade(jax.tree_util.tree_map(lambda x: x[i], buffer))
+        levels = levels.at[level_of[i]].add(out.radiance)
+        aovs = jax.tree_util.tree_map(lambda a, x: jnp.where(i == 0, x, a), aovs, out.aovs)
+        children = [out.children[name] for name in tree.branches]
+        start = jnp.where(i < first_leaf, b * i + 1, slots)
+        buffer = jax.tree_util.tree_map(
+            lambda buf, *xs: jax.lax.dynamic_update_slice_in_dim(buf, jnp.stack(xs), start, 0),
+            buffer, *children)
+        return (buffer, levels, aovs), None
+
+    (_, levels, aovs), _ = jax.lax.scan(step, (buffer, levels, aovs), jnp.arange(slots))
+    return levels, aovs
 
 
 def trace_radiance(scene, origin, direction, cone, settings, spectral=None):

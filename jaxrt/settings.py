@@ -7,6 +7,7 @@ _SHADOW_MODES = ("none", "hard", "soft")
 _DTYPES = ("float32", "float64")
 _BACKENDS = ("jax", "fused", "pallas", "auto")
 _ROOT_SOLVERS = ("newton", "optimistix")
+_RECURSIONS = ("unrolled", "scan")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +47,11 @@ class RenderSettings:
                        (None: max_distance); towards point lights at the light.
       max_depth        Whitted recursion depth (reflected/refracted rays); only used
                        when the scene has specular materials.
+      recursion        how the ray tree is compiled (`jaxrt.integrator`): "unrolled"
+                       (default: one vmapped batch per level, compile time grows with
+                       max_depth) or "scan" (one `lax.scan` over the tree's slots in
+                       heap order: one compiled shading step whatever max_depth, the
+                       same images).
       ray_offset       secondary rays start ray_offset · (ε + 8 ulp·max|pᵢ|) off the
                        surface (multiples of the hit epsilon plus the rounding error of
                        p; `integrator.spawn_offset`); must exceed 1 to leave the ε band.
@@ -65,7 +71,8 @@ class RenderSettings:
                        image; on CPUs sometimes faster, sometimes slower than "jax"),
                        "pallas" (the same lanes inside one
                        Pallas GPU kernel; interpret mode without a GPU) or "auto"
-                       (pallas on a GPU, jax elsewhere). Gradients always come from
+                       (pallas on a GPU, fused elsewhere; falls
+                       back to jax where lanes cannot run the program). Gradients always come from
                        the "jax" program.
       devices          local devices to shard the image's rows over (`jaxrt.sharding`;
                        1: no sharding, default; 0: all local devices).
@@ -118,6 +125,7 @@ class RenderSettings:
     silhouette: bool = False
     silhouette_width: float = 1.0
     root_solver: str = "newton"
+    recursion: str = "unrolled"
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -148,6 +156,7 @@ class RenderSettings:
         )
         need(_is_int(self.max_depth) and 0 <= self.max_depth <= 16, "max_depth", "an integer in [0, 16]")
         need(_is_num(self.ray_offset) and self.ray_offset > 0, "ray_offset", "a number > 0")
+        need(self.recursion in _RECURSIONS, "recursion", f"one of {_RECURSIONS}")
         need(_is_int(self.spp) and self.spp >= 1, "spp", "an integer ≥ 1")
         need(_is_int(self.seed), "seed", "an integer")
         need(_is_int(self.wavelengths) and self.wavelengths >= 0, "wavelengths", "an integer ≥ 0")
@@ -197,7 +206,7 @@ def _is_num(x):
 
 #: The presets of `RenderSettings.preset`: accuracy/speed dials only.
 #:   fast       previews: an epsilon of one pixel footprint, small budgets, no Newton
-#:              polish (so no hit-point gradients), the Pallas kernel on a GPU.
+#:              polish (so no hit-point gradients), fused lanes (Pallas on a GPU).
 #:   balanced   a quarter-pixel epsilon (rays that graze far surfaces converge: with an
 #:              absolute epsilon alone they exhaust any budget), one Newton step.
 #:   reference  converged images for tests and error curves (float64, slow).

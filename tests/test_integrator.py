@@ -223,6 +223,28 @@ def test_glass_scene_traces_both_branches():
     assert one_ray_program(opaque, jr.RenderSettings(max_depth=2)) == [(1,), (1,)] * 3
 
 
+def test_scan_recursion_compiles_one_shading_step_whatever_the_depth():
+    scene = scene_with(jr.bsdf.Dielectric(ETA), lights=1)
+    for depth in (1, 3, 8):
+        settings = jr.RenderSettings(max_depth=depth, recursion="scan")
+        # One ray and one shadow ray, inside one scan over the 2^(depth+1) − 1 slots.
+        assert one_ray_program(scene, settings) == [(), ()]
+    diffuse = scene_with(jr.bsdf.Lambert(0.8), lights=1)
+    assert one_ray_program(diffuse, jr.RenderSettings(max_depth=8, recursion="scan")) == [(1,), (1,)]
+
+
+def test_scan_and_unrolled_recursion_agree():
+    scene = whitted_scene()
+    o, d, cone = camera_rays(CAMERA)
+    settings = SETTINGS64.replace(max_depth=3, recursion="scan")
+    levels = jax.jit(jax.vmap(lambda o, d, c: integrator.trace_levels(scene, o, d, c, settings)))
+    scan_levels, scan_aovs = levels(o, d, cone)
+    unrolled, _, _ = whitted_levels()
+    np.testing.assert_allclose(np.asarray(scan_levels), unrolled, atol=1e-12)
+    image = jr.render(scene, CAMERA, SETTINGS64.replace(max_depth=0))
+    np.testing.assert_allclose(np.asarray(scan_aovs["depth"]), np.asarray(image.depth).ravel(), atol=1e-12)
+
+
 def test_only_dispersive_scenes_trace_wavelengths():
     glass = scene_with(jr.bsdf.Dielectric(ETA), lights=0)
     prism = scene_with(jr.bsdf.Dielectric(spectral.BK7), lights=0)
@@ -268,7 +290,8 @@ def special_rays():
 
 def test_every_depth_is_finite_and_conserves_radiance():
     origins, directions = special_rays()
-    settings = jr.RenderSettings(dtype="float64", shadows="none", max_depth=8)
+    # (The scan recursion: the same tree as the unrolled levels, compiled once.)
+    settings = jr.RenderSettings(dtype="float64", shadows="none", max_depth=8, recursion="scan")
     scene = furnace()
     levels = jax.jit(jax.vmap(lambda o, d: integrator.trace_levels(scene, o, d, jnp.zeros(2), settings)[0]))
     lv = np.asarray(levels(origins, directions))  # [rays, 9, 3]: depth d = sum of levels 0..d
