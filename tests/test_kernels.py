@@ -163,4 +163,4 @@ def test_auto_backend_falls_back_where_lanes_cannot_run():
     np.testing.assert_allclose(out["v"], reference(jnp.float64(2.0), samples)["v"])
     with pytest.raises(Unsupported):
         map_samples(fn, jnp.float64(2.0), samples, jr.RenderSettings(backend="fused"), reference)
-    assert resolve_backend("auto") == ("pallas" if jax.default_backend() == "gpu" else "jax")
+    assert resolve_backend("auto") == ("pallas" if jax.default_backend() == "gpu" else "fused")

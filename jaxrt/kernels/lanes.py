@@ -101,11 +101,31 @@ def _shape(block):
     return (block,) if isinstance(block, int) else tuple(block)
 
 
-def _broadcast(x, block, dtype):
+def _broadcast(x, block, dtype, ctx=None):
     """A lane as an array of shape `block` and `dtype`."""
     block = _shape(block)
+    if ctx is not None and _is_const(x):
+        return _const_lane(x, dtype, ctx)
     x = jnp.asarray(x, dtype)
     return jnp.broadcast_to(x, block) if x.shape != block else x
+
+
+def _const_lane(c, dtype, ctx):
+    """The constant `c` as a full lane, computed from a traced lane (ctx.anchor) when
+    there is one: a constant array built from constants alone may be evaluated at trace
+    time, and a Pallas kernel must not capture arrays."""
+    dtype = np.dtype(dtype)
+    if ctx.anchor is None:
+        return jnp.broadcast_to(jnp.asarray(c, dtype), ctx.block)
+    zero = ctx.zeros.get(np.dtype(np.int32) if dtype == np.dtype(bool) else dtype)
+    if zero is None:
+        zero_f = ctx.anchor * 0  # a traced zero: what follows is staged, not folded
+        for dt in (dtype, np.dtype(np.int32)):
+            ctx.zeros[dt] = lax.convert_element_type(zero_f, dt)
+        zero = ctx.zeros[np.dtype(np.int32) if dtype == np.dtype(bool) else dtype]
+    if dtype == np.dtype(bool):
+        return (zero + np.int32(bool(c))) != 0
+    return zero + np.asarray(c, dtype)[()]
 
 
 class _Ctx:
@@ -113,6 +133,8 @@ class _Ctx:
 
     def __init__(self, block, any_lane, unroll, materialize=False, fast_math=False):
         self.fast_math = fast_math
+        self.anchor = None
+        self.zeros = {}
         self.block = block
         self.any_lane = any_lane
         self.unroll = unroll
@@ -156,7 +178,7 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
     ops = []
     for x in lanes:
         if _is_const(x):
-            x = jnp.asarray(x, x.dtype)
+            x = _const_lane(x, x.dtype, ctx) if shape == ctx.block else jnp.asarray(x, x.dtype)
         if x.shape != shape:
             x = jnp.broadcast_to(x, shape)
         ops.append(x)
@@ -657,7 +679,7 @@ def _while(eqn, ins, ctx):
         flat = []
         for obj, dt in zip(objs, dtypes):
             for x in obj.reshape(-1):
-                flat.append(_broadcast(_convert(x, store_dtype(dt), ctx), block, store_dtype(dt)))
+                flat.append(_broadcast(_convert(x, store_dtype(dt), ctx), block, store_dtype(dt), ctx))
         return flat
 
     def unpack(flat):
@@ -685,7 +707,7 @@ def _while(eqn, ins, ctx):
         new_flat = pack(new)
         flat = [jnp.where(active, n, o) for n, o in zip(new_flat, flat)]
         still = cond_lanes(unpack(flat))
-        active = active & _broadcast(still, block, bool)
+        active = active & _broadcast(still, block, bool, ctx)
         return flat, active
 
     def body_fn(state):
@@ -697,7 +719,7 @@ def _while(eqn, ins, ctx):
         return ctx.any_lane(state[1])
 
     flat0 = pack(init)
-    active0 = _broadcast(cond_lanes(unpack(flat0)), block, bool)
+    active0 = _broadcast(cond_lanes(unpack(flat0)), block, bool, ctx)
     ctx.loop_depth += 1
     try:
         flat, _ = lax.while_loop(cond_fn, body_fn, (flat0, active0))
@@ -913,4 +935,9 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     Returns: one object array of lanes per output of the program.
     """
     ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize, fast_math)
+    for a in args:  # a traced per-ray input: constants become lanes through it
+        for x in a.reshape(-1):
+            if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
+                    and jnp.issubdtype(x.dtype, jnp.floating):
+                ctx.anchor = x
     return _eval_closed(closed, list(args), ctx)

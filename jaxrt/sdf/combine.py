@@ -17,25 +17,38 @@ from ..vecmath import safe_div
 from .base import SDF, check_sdf, non_negative
 
 
+def _min(a, b):
+    """min(a, b) as a select: its gradient follows the comparison. (jnp.minimum's
+    gradient tests a == min(a, b); where XLA computes `a` twice with different rounding,
+    e.g. in the fused lane programs of jaxrt.kernels, that test fails for both operands
+    and the gradient — a normal — is zero.)"""
+    return jnp.where(b < a, b, a)
+
+
+def _max(a, b):
+    """max(a, b) as a select (see `_min`)."""
+    return jnp.where(b > a, b, a)
+
+
 def op_union(d1, d2):
     """min(d1, d2): exact outside both shapes, a bound inside."""
-    return jnp.minimum(d1, d2)
+    return _min(d1, d2)
 
 
 def op_subtraction(d1, d2):
     """d1 with d2 removed: max(d1, −d2) (a bound)."""
-    return jnp.maximum(d1, -d2)
+    return _max(d1, -d2)
 
 
 def op_intersection(d1, d2):
     """max(d1, d2) (a bound)."""
-    return jnp.maximum(d1, d2)
+    return _max(d1, d2)
 
 
 def op_smooth_union(d1, d2, k):
     """Polynomial smooth minimum with blend width `k` (a bound)."""
     h = safe_div(jnp.maximum(k - jnp.abs(d1 - d2), 0.0), k)
-    return jnp.minimum(d1, d2) - h * h * k * 0.25
+    return _min(d1, d2) - h * h * k * 0.25
 
 
 def op_smooth_subtraction(d1, d2, k):
@@ -67,7 +80,7 @@ class Union(SDF):
         for child in self.children_[1:]:
             dc, mc = child.eval(p)
             m = jnp.where(dc < d, mc, m)
-            d = jnp.minimum(d, dc)
+            d = _min(d, dc)
         return d, m
 
     def lipschitz(self):
@@ -92,7 +105,7 @@ class Intersection(SDF):
         for child in self.children_[1:]:
             dc, mc = child.eval(p)
             m = jnp.where(dc > d, mc, m)
-            d = jnp.maximum(d, dc)
+            d = _max(d, dc)
         return d, m
 
     def lipschitz(self):
