@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..vecmath import TINY, dot, safe_div, safe_norm, safe_sqrt
+from ..vecmath import dot, safe_div, safe_norm, safe_sqrt
 from .base import Primitive, as_float, check, material_index, non_negative, positive
 
 
@@ -26,21 +26,30 @@ def sd_plane(p, normal, offset):
     return dot(p, normal) - offset
 
 
-def _outside_norm(q):
-    """|max(q, 0)|, the outside part of a box-like distance, with the right gradient
-    just outside a face: where |max(q, 0)|² is below `safe_norm`'s threshold (a point
-    within ~1e-15 of a face, as Newton-polished hits are) the norm is taken as the
-    largest component, whose gradient is the face normal (`safe_norm` would give 0).
+def _box_like(q, size):
+    """|max(q, 0)| + min(max q, 0), the distance of box-like shapes of extent `size`.
+
+    Within a band of 64 ulps of `size` outside the surface the value is max q (equal
+    to |max(q, 0)| on a face, a bound by less than the band at an edge). Newton-polished
+    hits lie within rounding of a face, where the plain formula's gradient depends on
+    rounding (`safe_norm` below its threshold gives 0, ties of max(q, 0) and min(·, 0)
+    at 0 give 2/3 of the normal); the band puts them on one side of the switch.
+
+    max q is taken as q[argmax q], whose gradient is the nearest face's normal: the
+    gradient of `jnp.max` selects the components equal to the maximum, and where XLA
+    computes q twice with different roundings (it does, in some gradient programs)
+    none is equal and the normal comes out as 0.
     """
+    band = 64.0 * jnp.finfo(q.dtype).eps * (1.0 + size)
     outside = jnp.maximum(q, 0.0)
-    tiny = dot(outside, outside) <= TINY
-    return jnp.where(tiny, jnp.max(outside), safe_norm(outside))
+    far = jnp.max(outside) > band
+    nearest = q[jnp.argmax(q)]
+    return jnp.where(far, safe_norm(outside), nearest)
 
 
 def sd_box(p, half_extents):
     """Exact: signed distance to an axis-aligned box centred at the origin."""
-    q = jnp.abs(p) - half_extents
-    return _outside_norm(q) + jnp.minimum(jnp.max(q), 0.0)
+    return _box_like(jnp.abs(p) - half_extents, jnp.max(jnp.abs(half_extents)))
 
 
 def sd_round_box(p, half_extents, radius):
@@ -83,7 +92,7 @@ def sd_cylinder(p, radius, half_height):
     d = jnp.abs(jnp.stack([safe_norm(p[jnp.array([0, 2])]), p[1]])) - jnp.stack(
         [radius, half_height]
     )
-    return jnp.minimum(jnp.max(d), 0.0) + _outside_norm(d)
+    return _box_like(d, jnp.maximum(jnp.abs(radius), jnp.abs(half_height)))
 
 
 def sd_ellipsoid(p, radii):
