@@ -28,7 +28,7 @@ def _run_lanes(fn, params, *per_ray, block):
 
 
 def program(params, a, b):
-    """Exercises what lanes must handle: per-ray loops, conds, dynamic indexing, scatter,
+    """Exercises what lanes must handle: per-ray loops, conds, dynamic indexing, scatters,
     small matrix products, reductions, argmax, round, dynamic_update_slice."""
     table = params[:4]
     m = params[4:13].reshape(3, 3)
@@ -47,7 +47,7 @@ def program(params, a, b):
         return k + 1, t + 0.25 + 0.1 * jnp.abs(b)
 
     k, t = jax.lax.while_loop(cond, body, (0, 0.0))
-    s = jnp.zeros(4).at[2].set(b).at[1].add(a)  # scatter with constant indices
+    s = jnp.zeros(4).at[2].set(b).at[1].add(a).at[i].add(b)  # scatter: constant, per-ray index
     u = jax.lax.dynamic_update_slice(jnp.zeros(5), jnp.stack([a, b]), (jnp.int32(2),))
     return (w.sum() + jnp.max(w) + jnp.argmax(w).astype(jnp.float32), picked, branch,
             k.astype(jnp.float32), t, s, u, jnp.round(a * 7.3), jnp.linalg.norm(v))

@@ -46,8 +46,8 @@ def main(argv=None):
         results[part] = rows
         md += [f"## {part}", "", _table(rows), ""]
         print(f"\n{part}\n{_table(rows)}", flush=True)
-    (out_dir / "results.json").write_text(json.dumps(results, indent=1, default=str))
-    (out_dir / "scaling.md").write_text("\n".join(md))
+        (out_dir / "results.json").write_text(json.dumps(results, indent=1, default=str))
+        (out_dir / "scaling.md").write_text("\n".join(md))
     print(f"wrote {out_dir / 'results.json'} and scaling.md")
     return results
 
@@ -237,10 +237,12 @@ def _showcase(cfg, section):
     path = ROOT / "jaxrt/data/showcase.toml"
     scene, camera, base = jr.config.load(path, width=cfg["size"][0], height=cfg["size"][1])
     rows = []
+    from jaxrt.kernels import resolve_backend
+
     backends = [b for b in cfg["backends"] if b != "pallas" or jax.default_backend() == "gpu"]
     for backend in backends:
         tl, tc, t, _ = measure(scene, camera, base.replace(backend=backend), section["repeats"])
-        rows.append(dict(scene="showcase", backend=backend, width=cfg["size"][0],
+        rows.append(dict(scene="showcase", backend=f"{backend} ({resolve_backend(backend)})", width=cfg["size"][0],
                          height=cfg["size"][1], trace_lower_s=tl, xla_compile_s=tc, render_ms=1e3 * t))
     return rows
 
@@ -264,6 +266,7 @@ def _devices(cfg, section):
                 one, rgb1 = t, rgb
             rows.append(dict(width=w, height=h, devices=c, render_ms=1e3 * t, speedup=one / t,
                              max_diff_vs_1=float(np.abs(rgb - rgb1).max())))
+            print(rows[-1], flush=True)
     return rows
 
 

@@ -51,6 +51,11 @@ MATERIALIZE = True
 #: is not what bounds the kernel.
 PALLAS_FAST_MATH = False
 
+#: Elementwise primitives that Pallas' Triton lowering lacks (jax 0.10/0.11): a program
+#: using them (a Beckmann distribution's erfc, say) is Unsupported for "pallas", and
+#: "auto" renders it with the "jax" program.
+TRITON_UNSUPPORTED = ("erf", "erfc", "lgamma", "digamma", "bessel_i0e", "bessel_i1e")
+
 #: Rays per Pallas program instance when batch_size does not say otherwise: the probe
 #: in shared/bench/pallas_probe.py found blocks of 256 fastest on an H100.
 PALLAS_BLOCK = 256
@@ -258,7 +263,8 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
             args.append(obj)
         args += [_lane(px), _lane(py)]
         outs = eval_lanes(closed, args, (th, tw), any_lane=any_lane,
-                          unroll=settings_unroll(settings), fast_math=PALLAS_FAST_MATH)
+                          unroll=settings_unroll(settings), fast_math=PALLAS_FAST_MATH,
+                          unsupported=TRITON_UNSUPPORTED)
         r = 0
         zero = px * 0  # outputs that are constants: lanes computed from a traced zero
         for o in outs:

@@ -135,6 +135,7 @@ class _Ctx:
         self.fast_math = fast_math
         self.anchor = None
         self.zeros = {}
+        self.unsupported = frozenset()
         self.block = block
         self.any_lane = any_lane
         self.unroll = unroll
@@ -548,18 +549,13 @@ def _fill(fill_value, dtype):
 
 
 def _scatter(add):
-    def rule(eqn, ins, ctx):
-        operand, indices, updates = ins
-        if not all(_is_const(x) for x in indices.reshape(-1)):
-            raise Unsupported("scatter with per-ray indices")
+    def concrete(eqn, operand, ix, updates, ctx):
         p = {k: v for k, v in eqn.params.items() if k not in ("update_jaxpr", "update_consts")}
-        n = operand.size
-        ix = np.asarray(indices.tolist(), eqn.invars[1].aval.dtype).reshape(indices.shape)
         dtype = eqn.outvars[0].aval.dtype
         out = operand.copy()
         flat_out = out.reshape(-1)
         flat_upd = updates.reshape(-1)
-        # where does each update element land? scatter its id (+1, 0 = nothing)
+        # where does each update element land? scatter a one-hot of it (concrete)
         with jax.ensure_compile_time_eval():
             for j in range(updates.size):
                 onehot = np.zeros(updates.shape, np.int32)
@@ -574,7 +570,40 @@ def _scatter(add):
                             flat_out[i] = _apply("add", flat_out[i], flat_upd[j], dtype=dtype, ctx=ctx)
                         else:
                             flat_out[i] = flat_upd[j]
-        return [out]
+        return out
+
+    def rule(eqn, ins, ctx):
+        operand, indices, updates = ins
+        idx_dtype = eqn.invars[1].aval.dtype
+        dtype = eqn.outvars[0].aval.dtype
+        varying = [pos for pos in np.ndindex(indices.shape) if not _is_const(indices[pos])]
+        if not varying:
+            ix = np.asarray(indices.tolist(), idx_dtype).reshape(indices.shape)
+            return [concrete(eqn, operand, ix, updates, ctx)]
+        # per-ray indices (the gradient of x[argmax x], say): every candidate index,
+        # then a select per element
+        dims = eqn.params["dimension_numbers"].scatter_dims_to_operand_dims
+        ranges = [operand.shape[dims[pos[-1] if indices.ndim else 0]] for pos in varying]
+        if len(varying) > 2 or math.prod(ranges) > 4096:
+            raise Unsupported("scatter with more than two per-ray indices")
+        result = None
+        for values in itertools.product(*[range(n) for n in ranges]):
+            ixo = indices.copy()
+            for pos, v in zip(varying, values):
+                ixo[pos] = np.asarray(v, idx_dtype)[()]
+            ix = np.asarray(ixo.tolist(), idx_dtype).reshape(indices.shape)
+            cand = concrete(eqn, operand, ix, updates, ctx)
+            if result is None:
+                result = cand
+                continue
+            match = None
+            for pos, v in zip(varying, values):
+                eq = _apply("eq", indices[pos], np.asarray(v, idx_dtype)[()], dtype=np.dtype(bool), ctx=ctx)
+                match = eq if match is None else _apply("and", match, eq, dtype=np.dtype(bool), ctx=ctx)
+            for idx in np.ndindex(result.shape):
+                if cand[idx] is not result[idx]:
+                    result[idx] = _select(match, result[idx], cand[idx], dtype, ctx)
+        return [result]
 
     return rule
 
@@ -900,6 +929,9 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
         ctx.used_outputs = used
         ins = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
+        if name in ctx.unsupported:
+            raise Unsupported(f"this backend cannot run the primitive `{name}` of the one-ray "
+                              "program; use RenderSettings(backend=\"jax\")")
         if name in _ELEMENTWISE:
             outs = _elementwise(eqn, ins, ctx)
         elif name in _RULES:
@@ -916,7 +948,7 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
 
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
-               fast_math=False):
+               fast_math=False, unsupported=()):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -931,10 +963,12 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
         loops) once, behind an optimization barrier (see `_barrier`; for XLA on CPUs).
       fast_math: float32 sqrt and division by shared values in cheaper forms, within a
         few ulps (`_fast_math`; for GPU kernels).
+      unsupported: primitive names the target cannot compile (raise `Unsupported`).
 
     Returns: one object array of lanes per output of the program.
     """
     ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize, fast_math)
+    ctx.unsupported = frozenset(unsupported)
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
