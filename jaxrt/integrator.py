@@ -406,8 +406,9 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
     if "reflect" in tree.branches:
         spawns = _select_material(scene.materials, lambda m: m.has_reflection,
                                   lambda m: yes, no, material)
+        alive = found & spawns
         children["reflect"] = Ray(above, reflect(wo, n), cone,
-                                  throughput * colour(c_refl), ray.sigma, found & spawns)
+                                  jnp.where(alive, throughput * colour(c_refl), 0.0), ray.sigma, alive)
     if "transmit" in tree.branches:
         spawns = _select_material(scene.materials, lambda m: m.has_transmission,
                                   lambda m: yes, no, material)
@@ -416,9 +417,9 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
                                   lambda m: getattr(m, "absorption", zeros), zeros, material)
         # Entering: the medium of the material; leaving: vacuum.
         sigma = jnp.where(entering, colour(inside), 0.0)
-        weight = jnp.where(valid, throughput * colour(c_trans), 0.0)
-        children["transmit"] = Ray(below, wt, cone, weight, sigma,
-                                   found & spawns & valid)
+        alive = found & spawns & valid
+        weight = jnp.where(alive, throughput * colour(c_trans), 0.0)
+        children["transmit"] = Ray(below, wt, cone, weight, sigma, alive)
     return children
 
 
