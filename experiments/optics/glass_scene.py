@@ -9,12 +9,14 @@ absorption), a mirror sphere (`Mirror`), a gold sphere and a copper torus
 (`Conductor`, complex-index Fresnel), lit by the sun (hard shadows; glass and water
 cast opaque shadows, as in Whitted 1980) under a sky.
 
-For every depth in `depths` the scene is compiled (`jaxrt.render.compile_render`) and
-rendered; the script prints the compile time, the render time, the ray slots per
-camera ray (1 + 2 + … + 2^depth: the glass and water split every ray into a reflected
-and a refracted one), and how far the image still is from the deepest one (mean and
-max |Δ| of linear RGB), so that the price of each level can be read against what it
-adds. Writes `glass_scene_d{depth}.png` (sRGB previews), `glass_scene.exr` (the deepest,
+For every depth in `depths`, and for each way of compiling the ray tree in
+`recursions` (`RenderSettings.recursion`: "unrolled" levels, or one "scan" over the
+tree's slots), the scene is compiled (`jaxrt.render.compile_render`) and rendered; the
+script prints the compile time, the render time, the ray slots per camera ray
+(1 + 2 + … + 2^depth: the glass and water split every ray into a reflected and a
+refracted one), and how far the image still is from the deepest one (mean and max |Δ|
+of linear RGB), so that the price of each level can be read against what it adds; the
+recursions must give the same images. Writes `glass_scene_d{depth}.png` (sRGB previews), `glass_scene.exr` (the deepest,
 linear, with AOVs), `glass_scene_depths.png` (all depths side by side), `results.json`
 and the resolved `config.json` under the output folder (default out/glass_scene/).
 
@@ -123,51 +125,72 @@ def build_scene(cfg):
     return scene, camera
 
 
-def settings_for(cfg, depth):
+def settings_for(cfg, depth, recursion="unrolled"):
     return jr.RenderSettings(max_depth=int(depth), max_steps=int(cfg["max_steps"]),
                              max_distance=float(cfg["max_distance"]), spp=int(cfg["spp"]),
-                             wavelengths=int(cfg["wavelengths"]), batch_size=int(cfg["batch_size"]))
+                             wavelengths=int(cfg["wavelengths"]), batch_size=int(cfg["batch_size"]),
+                             recursion=recursion)
+
+
+def time_depths(cfg, scene, camera, recursion, out_dir=None):
+    """Compile and render at every depth of cfg["depths"]; rows of figures and images."""
+    rows, images = [], []
+    for depth in cfg["depths"]:
+        settings = settings_for(cfg, depth, recursion)
+        tree = integrator.ray_tree(scene, settings)
+        t0, c0 = time.perf_counter(), time.process_time()
+        render = compile_render(scene, camera, settings)
+        compile_s, compile_cpu = time.perf_counter() - t0, time.process_time() - c0
+        times, cpu = [], []
+        for _ in range(int(cfg["repeats"])):
+            t0, c0 = time.perf_counter(), time.process_time()
+            image = jax.block_until_ready(render(scene, camera))
+            times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        rgb = np.asarray(image.rgb)
+        if not np.all(np.isfinite(rgb)):
+            raise FloatingPointError(f"glass_scene: non-finite pixels at max_depth={depth} ({recursion})")
+        if out_dir is not None:
+            jr.io.write_png(out_dir / f"glass_scene_d{depth}.png", rgb, exposure=float(cfg["exposure"]))
+        images.append(rgb)
+        rows.append({
+            "recursion": recursion,
+            "max_depth": int(depth),
+            "compile_s": compile_s,
+            "render_s": min(times),
+            "compile_cpu_s": compile_cpu,   # CPU seconds of this process (all threads):
+            "render_cpu_s": min(cpu),       # unlike wall time, not inflated by other load
+            "rays_per_level": tree.rays_per_level(),
+            "ray_slots": sum(tree.rays_per_level()),
+            "wavelengths": tree.wavelengths,
+            "mean_rgb": float(rgb.mean()),
+        })
+        print(f"  {recursion} depth {depth}: compile {compile_s:.1f} s ({compile_cpu:.1f} CPU s), "
+              f"render {min(times):.2f} s ({min(cpu):.2f} CPU s)", flush=True)
+    deepest = images[-1]
+    for row, rgb in zip(rows, images):
+        diff = np.abs(rgb - deepest)
+        row["mean_abs_diff_to_deepest"] = float(diff.mean())
+        row["max_abs_diff_to_deepest"] = float(diff.max())
+    return rows, images, image
 
 
 def run(cfg, out_dir):
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     scene, camera = build_scene(cfg)
-    rows, images = [], []
-    for depth in cfg["depths"]:
-        settings = settings_for(cfg, depth)
-        tree = integrator.ray_tree(scene, settings)
-        t0 = time.perf_counter()
-        render = compile_render(scene, camera, settings)
-        compile_s = time.perf_counter() - t0
-        times = []
-        for _ in range(int(cfg["repeats"])):
-            t0 = time.perf_counter()
-            image = jax.block_until_ready(render(scene, camera))
-            times.append(time.perf_counter() - t0)
-        rgb = np.asarray(image.rgb)
-        if not np.all(np.isfinite(rgb)):
-            raise FloatingPointError(f"glass_scene: non-finite pixels at max_depth={depth}")
-        jr.io.write_png(out_dir / f"glass_scene_d{depth}.png", rgb, exposure=float(cfg["exposure"]))
-        images.append(rgb)
-        rows.append({
-            "max_depth": int(depth),
-            "compile_s": compile_s,
-            "render_s": min(times),
-            "rays_per_level": tree.rays_per_level(),
-            "ray_slots": sum(tree.rays_per_level()),
-            "wavelengths": tree.wavelengths,
-            "mean_rgb": float(rgb.mean()),
-        })
-        print(f"  depth {depth}: compile {compile_s:.1f} s, render {min(times):.2f} s", flush=True)
-    jr.io.write_exr(out_dir / "glass_scene.exr", image)
-    deepest = images[-1]
-    for row, rgb in zip(rows, images):
-        diff = np.abs(rgb - deepest)
-        row["mean_abs_diff_to_deepest"] = float(diff.mean())
-        row["max_abs_diff_to_deepest"] = float(diff.max())
-    jr.io.write_png(out_dir / "glass_scene_depths.png", np.concatenate(images, axis=1),
-                    exposure=float(cfg["exposure"]))
+    rows, first = [], None
+    for k, recursion in enumerate(cfg["recursions"]):
+        mode_rows, images, image = time_depths(cfg, scene, camera, recursion, out_dir if k == 0 else None)
+        if first is None:
+            first = images
+            jr.io.write_exr(out_dir / "glass_scene.exr", image)
+            jr.io.write_png(out_dir / "glass_scene_depths.png", np.concatenate(images, axis=1),
+                            exposure=float(cfg["exposure"]))
+        else:  # the recursions build the same tree: the images must agree
+            for row, a, b in zip(mode_rows, first, images):
+                row["max_abs_diff_to_" + cfg["recursions"][0]] = float(np.abs(a - b).max())
+        rows += mode_rows
     results = {
         "resolution": [camera.width, camera.height],
         "spp": int(cfg["spp"]),
@@ -190,10 +213,16 @@ def main(argv=None):
     r = run(cfg, args.out)
     w, h = r["resolution"]
     print(f"glass_scene: {w}×{h}, {r['spp']} spp, on {r['device']} ({r['cpu_count']} cores)")
-    print("  depth  ray slots  compile (s)  render (s)  mean |Δ| to deepest  max |Δ|")
+    print("  (wall seconds, and CPU seconds of this process in brackets)")
+    print("  recursion  depth  ray slots  compile (s)        render (s)        mean |Δ| to deepest  max |Δ|")
     for row in r["depths"]:
-        print(f"  {row['max_depth']:5d}  {row['ray_slots']:9d}  {row['compile_s']:11.2f}  {row['render_s']:10.3f}"
+        print(f"  {row['recursion']:9s}  {row['max_depth']:5d}  {row['ray_slots']:9d}  "
+              f"{row['compile_s']:7.1f} ({row['compile_cpu_s']:6.1f})  {row['render_s']:7.2f} ({row['render_cpu_s']:6.2f})"
               f"  {row['mean_abs_diff_to_deepest']:19.5f}  {row['max_abs_diff_to_deepest']:.4f}")
+    others = [row for row in r["depths"] if row["recursion"] != r["depths"][0]["recursion"]]
+    if others:
+        worst = max(row[k] for row in others for k in row if k.startswith("max_abs_diff_to_"))
+        print(f"  the recursions agree: max |Δ| between their images {worst:.2e}")
     print(f"wrote {args.out}/glass_scene_d*.png, glass_scene_depths.png, glass_scene.exr, results.json")
     return r
 
