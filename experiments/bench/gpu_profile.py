@@ -26,6 +26,7 @@ def main(argv=None):
     ap.add_argument("--calls", type=int, default=20)
     ap.add_argument("--width", type=int)
     ap.add_argument("--height", type=int)
+    ap.add_argument("--devices", type=int, action="append", help="RenderSettings.devices values")
     args = ap.parse_args(argv)
     cfg = tomllib.loads(Path(args.config).read_text())
 
@@ -40,13 +41,23 @@ def main(argv=None):
     scene, camera, base = jr.config.load(ROOT / cfg["scene"], width=args.width or section["width"],
                                          height=args.height or section["height"])
     dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
-    for name in args.variant or ["pallas-fast"]:
+    runs = [(name, d) for name in (args.variant or ["pallas-fast"]) for d in (args.devices or [1])]
+    for name, devices in runs:
         overrides = dict(cfg["variants"][name])
         overrides.pop("kernel", None)
-        settings = base.replace(**overrides)
-        f = jax.jit(lambda d: _render.__wrapped__(*eqx.combine(d, static), settings))
+        settings = base.replace(**overrides, devices=devices)
+        name = f"{name} devices={devices}"
+        f = jax.jit(lambda d, settings=settings: _render.__wrapped__(*eqx.combine(d, static), settings))
         f = f.lower(dyn).compile()
         f(dyn).rgb.block_until_ready()
+        import time
+
+        t0 = time.perf_counter()
+        for _ in range(args.calls):
+            out = f(dyn)
+        out.rgb.block_until_ready()
+        print(f"{name}: {1e3 * (time.perf_counter() - t0) / args.calls:.3f} ms per render "
+              f"({args.calls} back to back)", flush=True)
         tmp = tempfile.mkdtemp()
         with jax.profiler.trace(tmp):
             for _ in range(args.calls):
