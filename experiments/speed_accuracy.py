@@ -6,7 +6,7 @@ combinations (the presets), on several scenes, against a converged reference.
 
 For each scene: the reference is the scene's own settings with the `[reference]` dials
 (float64, tight epsilon, large budgets, many samples). Every other setting is the
-scene's settings with one dial changed (`[dials]`, or the scene's own `dials` list), or
+scene's settings with one dial changed (`[dials]`, or the scene's own `dials` list and `dial_values`), or
 a named combination (`[combos]`, including `preset:NAME` = RenderSettings.preset(NAME)
 on the scene's settings). Measured: compile time, median render time of `repeats`
 renders, the RMSE and maximum of |rgb − reference| over the image (linear radiance),
@@ -51,14 +51,19 @@ def main(argv=None):
     print(info, flush=True)
     wanted = args.scenes.split(",") if args.scenes else None
     results = dict(info=info, scenes={})
-    md = [f"# Speed against accuracy ({info['device']}, {info['backend']}, "
-          f"{info['cpu_cores']} cores, jax {info['jax']})", ""]
+    if wanted and (out_dir / "results.json").exists():  # keep the other scenes' results
+        results["scenes"] = json.loads((out_dir / "results.json").read_text())["scenes"]
     for sc in cfg["scenes"]:
         if wanted and sc["name"] not in wanted:
             continue
-        rows = run_scene(sc, cfg, jr, out_dir)
-        results["scenes"][sc["name"]] = rows
-        md += _markdown(sc, rows)
+        results["scenes"][sc["name"]] = run_scene(sc, cfg, jr, out_dir)
+        md = [f"# Speed against accuracy ({info['device']}, {info['backend']}, "
+              f"{info['cpu_cores']} cores, jax {info['jax']})", "",
+              "Times: CPU medians after compilation on a 2-core machine shared with other "
+              "jobs (noisy: compare within a scene, not across runs).", ""]
+        for other in cfg["scenes"]:
+            if other["name"] in results["scenes"]:
+                md += _markdown(other, results["scenes"][other["name"]])
         (out_dir / "results.json").write_text(json.dumps(results, indent=1, default=str))
         (out_dir / "results.md").write_text("\n".join(md))
     print(f"wrote {out_dir / 'results.md'}")
@@ -87,7 +92,7 @@ def run_scene(sc, cfg, jr, out_dir):
     settings = [("base", "scene settings", base)]
     dials = cfg["dials"]
     for dial in sc.get("dials", list(dials)):
-        for value in dials[dial]:
+        for value in sc.get("dial_values", {}).get(dial, dials[dial]):
             try:
                 s = base.replace(**{dial: value})
             except ValueError as e:
