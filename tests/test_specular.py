@@ -240,6 +240,7 @@ def test_flags_decide_the_branches():
     assert (Mirror().has_reflection, Mirror().has_transmission, Mirror().has_diffuse) == (True, False, False)
     assert (Dielectric().has_reflection, Dielectric().has_transmission) == (True, True)
     assert not Dielectric(1.5).is_dispersive
+    assert Dielectric("bk7").is_dispersive and abs(float(Dielectric("bk7").ior()) - 1.5168) < 1e-4  # n_d
     assert not Whitted(c_refl=0.5).has_transmission and Whitted(c_refl=0.5, c_trans=0.5).has_transmission
     assert Whitted(base=Lambert()).has_diffuse and not Whitted().has_diffuse
     assert not Conductor("silver").has_transmission
@@ -251,6 +252,7 @@ def test_flags_decide_the_branches():
     (lambda: Mirror(tint=(1.0, 1.0)), "Mirror(tint=...)"),
     (lambda: Conductor(eta=(1.0, 1.0, 1.0)), "Conductor(k=...)"),
     (lambda: Conductor("unobtainium"), "unobtainium"),
+    (lambda: Dielectric("glassy"), "glassy"),
     (lambda: Whitted(base=Mirror()), "Whitted(base=...)"),
     (lambda: Whitted(eta=0.0, c_trans=0.5), "Whitted(eta=...)"),
 ])

@@ -96,8 +96,8 @@ class Dielectric(Material):
     Parameters:
       eta         index of the inside relative to the outside (> 0; 1.5 glass,
                   1.333 water): a number (differentiable), or a wavelength model from
-                  `jaxrt.spectral` (Cauchy/Sellmeier), which makes the material
-                  dispersive: spectral rendering evaluates it per wavelength sample, RGB
+                  `jaxrt.spectral` (Cauchy/Sellmeier, or a preset name such as "bk7",
+                  "water", "diamond"), which makes the material dispersive: spectral rendering evaluates it per wavelength sample, RGB
                   rendering at REFERENCE_WAVELENGTH_NM.
       absorption  σ_a, RGB absorption coefficient per unit length, ≥ 0 (differentiable;
                   0: clear).
@@ -111,6 +111,10 @@ class Dielectric(Material):
     has_transmission = True
 
     def __init__(self, eta=1.5, absorption=0.0):
+        if isinstance(eta, str):
+            from ..spectral import ior_preset
+
+            eta = ior_preset(eta)
         if isinstance(eta, eqx.Module):
             self.eta = eta
         else:
