@@ -14,6 +14,7 @@ import jaxrt as jr
 from jaxrt import integrator, spectral
 from jaxrt.camera import pixel_samples
 from jaxrt.heightfield import HeightField, PlaneHeight
+from jaxrt.render import _cast
 
 ETA = 1.5
 
@@ -112,13 +113,9 @@ def reference_radiance(o, d, depth):
 
 
 def camera_rays(camera, dtype=jnp.float64):
+    """(origins, directions, cones) of the pixel centres, as `render` makes them."""
     samples = pixel_samples(camera, 1, 0).astype(dtype)
-    cam = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx_is_float(x) else x, camera)
-    return jax.vmap(cam.generate_ray)(samples[:, 0], samples[:, 1])
-
-
-def eqx_is_float(x):
-    return isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.floating)
+    return jax.vmap(_cast(camera, dtype).generate_ray)(samples[:, 0], samples[:, 1])
 
 
 # A budget that lets sphere tracing converge on the floor up to the horizon (a ray at
