@@ -117,12 +117,9 @@ def _const_lane(c, dtype, ctx):
     dtype = np.dtype(dtype)
     if ctx.anchor is None:
         return jnp.broadcast_to(jnp.asarray(c, dtype), ctx.block)
-    zero = ctx.zeros.get(np.dtype(np.int32) if dtype == np.dtype(bool) else dtype)
-    if zero is None:
-        zero_f = ctx.anchor * 0  # a traced zero: what follows is staged, not folded
-        for dt in (dtype, np.dtype(np.int32)):
-            ctx.zeros[dt] = lax.convert_element_type(zero_f, dt)
-        zero = ctx.zeros[np.dtype(np.int32) if dtype == np.dtype(bool) else dtype]
+    # A fresh traced zero each time (not cached on ctx): a zero staged inside a loop body
+    # must not be reused outside it, where it would be a leaked tracer.
+    zero = lax.convert_element_type(ctx.anchor * 0, np.int32 if dtype == np.dtype(bool) else dtype)
     if dtype == np.dtype(bool):
         return (zero + np.int32(bool(c))) != 0
     return zero + np.asarray(c, dtype)[()]
