@@ -1,0 +1,520 @@
+"""Gradients of rendered images: every parameter family against central finite
+differences in float64, closed forms, invariances, memory, and the extremes.
+
+Interior pixels only: a window of pixels whose 3×3 (5×5 behind glass and mirrors)
+neighbourhood sees one material at a continuous depth, so that no outline crosses it
+(outlines have their own estimator, tests/test_silhouette.py). Shadows are off: a hard
+shadow edge is a discontinuity of the same kind.
+"""
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+import jaxrt as jr
+from jaxrt import sdf
+from jaxrt.bsdf import GGX, CookTorrance, Dielectric, Lambert, Mirror, Phong, SchlickFresnel
+
+#: Reference settings: float64, a tight epsilon and three Newton steps, so that the
+#: polished hit distance is exact to rounding and finite differences see a smooth image.
+FD = jr.RenderSettings(dtype="float64", hit_epsilon=1e-7, newton_steps=3, max_steps=400,
+                       shadows="none", batch_size=None, max_depth=0)
+RTOL = 1e-4
+
+
+# -- helpers -------------------------------------------------------------------------
+
+
+def interior_mask(image, erode=1):
+    """Pixels whose (2·erode + 1)² neighbourhood sees the same albedo and hit state, with
+    normals within 40° of each other and depths within 25 % (no outline, crease or
+    occlusion edge nearby)."""
+    albedo = np.asarray(image.albedo)
+    hit = np.asarray(image.coverage) > 0.5
+    depth = np.asarray(image.depth)
+    normal = np.asarray(image.normal)
+    h, w = hit.shape
+    ok = np.zeros((h, w), bool)
+    for i in range(erode, h - erode):
+        for j in range(erode, w - erode):
+            win = (slice(i - erode, i + erode + 1), slice(j - erode, j + erode + 1))
+            same = np.all(np.abs(albedo[win] - albedo[i, j]) < 1e-12) and np.all(hit[win] == hit[i, j])
+            smooth = (not hit[i, j]) or (
+                np.all(np.abs(depth[win] - depth[i, j]) < 0.25 * depth[i, j])
+                and np.all(normal[win] @ normal[i, j] > np.cos(np.radians(25.0))))
+            ok[i, j] = same and smooth
+    return ok
+
+
+class Problem:
+    """loss(x) for the flattened differentiable leaves x of (scene, camera): a fixed
+    random weighting of the interior pixels' colours."""
+
+    def __init__(self, scene, camera, settings, erode=1, seed=0, facing=None):
+        self.settings = settings
+        params, self.static = eqx.partition((scene, camera), eqx.is_inexact_array)
+        x0, self.unravel = ravel_pytree(params)
+        self.x0 = np.asarray(x0)
+        image = jr.render(scene, camera, settings)
+        self.mask = interior_mask(image, erode)
+        if facing is not None:  # only surfaces within acos(facing) of facing the camera
+            self.mask &= np.asarray(image.normal)[..., 2] < -facing
+        rng = np.random.default_rng(seed)
+        weights = rng.uniform(0.5, 1.5, self.mask.shape) * self.mask / max(self.mask.sum(), 1)
+        self.weights = jnp.asarray(weights[..., None] * np.array([0.3, 0.5, 0.2]))
+        # Leaves are perturbed outside of any trace (the flat vector is unravelled
+        # eagerly), and the gradient is taken of the pytree itself.
+        self.params = params
+        self.grad_tree = eqx.filter_jit(jax.grad(self._loss_tree))
+        leaves = jax.tree_util.tree_flatten_with_path(params)[0]
+        self.names = []
+        for path, leaf in leaves:
+            self.names += [jax.tree_util.keystr(path)] * int(np.size(leaf))
+
+    def _loss_tree(self, params, weights):
+        scene, camera = eqx.combine(params, self.static)
+        return jnp.sum(jr.render(scene, camera, self.settings).rgb * weights)
+
+    def loss(self, x):
+        return float(self._loss_tree(self.unravel(jnp.asarray(x)), self.weights))
+
+    def grad(self, x):
+        return ravel_pytree(self.grad_tree(self.unravel(jnp.asarray(x)), self.weights))[0]
+
+    def finite_differences(self, indices, rel_step=1e-5):
+        fd = []
+        for i in indices:
+            h = rel_step * max(1.0, abs(float(self.x0[i])))
+            e = np.zeros(self.x0.shape)
+            e[i] = h
+            fd.append((self.loss(self.x0 + e) - self.loss(self.x0 - e)) / (2 * h))
+        return np.array(fd)
+
+    def check(self, family_substrings):
+        """For each family (a substring of leaf paths): ‖g − fd‖ ≤ RTOL ‖fd‖."""
+        g = np.asarray(self.grad(self.x0))
+        report = {}
+        for family in family_substrings:
+            idx = [i for i, n in enumerate(self.names) if family in n]
+            assert idx, f"no parameter matches {family!r}: {sorted(set(self.names))}"
+            fd = self.finite_differences(idx)
+            err = np.linalg.norm(g[idx] - fd)
+            scale = np.linalg.norm(fd)
+            report[family] = (err, scale)
+        bad = {k: v for k, v in report.items() if not v[0] <= RTOL * v[1] + 1e-12}
+        assert not bad, f"gradient ≠ finite differences (error, |fd|): {bad}"
+        # Each family must matter in the window (a gradient test of a zero is no test).
+        dead = [k for k, (_, s) in report.items() if s < 1e-6]
+        assert not dead, f"families with no effect on the window: {dead}"
+        return report
+
+
+# -- depth 0: shapes, placements, materials, lights, camera --------------------------
+
+
+@pytest.fixture(scope="module")
+def placement_problem():
+    surface = sdf.Union(
+        sdf.Translate(sdf.Rotate(sdf.Box((0.5, 0.4, 0.45), material=0), axis=(0.3, 1.0, 0.2),
+                                 angle=20.0), offset=(-0.8, 0.0, 0.0)),
+        sdf.Translate(sdf.Scale(sdf.Sphere(0.42, material=1), factor=1.3), offset=(0.8, 0.05, 0.0)),
+        sdf.Plane(normal=(0.0, 1.0, 0.05), offset=-0.75, material=2),
+    )
+    materials = [
+        Lambert((0.7, 0.5, 0.3)),
+        CookTorrance(GGX(0.3), SchlickFresnel(0.5), diffuse=(0.2, 0.3, 0.4)),
+        Phong(kd=(0.3, 0.4, 0.5), ks=0.5, q=3.0, normalized=True),
+    ]
+    lights = [jr.PointLight((1.5, 3.0, -2.5), (20.0, 18.0, 16.0)),
+              jr.DirectionalLight((-0.4, 1.0, -0.6), (0.5, 0.6, 0.7))]
+    scene = jr.Scene(surface, materials, lights, background=(0.1, 0.2, 0.3))
+    camera = jr.PerspectiveCamera(eye=(0.1, 1.3, -3.0), target=(0.0, -0.1, 0.0), fov=45.0,
+                                  width=24, height=18)
+    return Problem(scene, camera, FD)
+
+
+def test_placement_material_light_camera_gradients_match_finite_differences(placement_problem):
+    p = placement_problem
+    assert p.mask.sum() >= 80
+    p.check([
+        "half_extents", "axis", "angle", ".offset", "factor", "radius", "normal",       # shapes
+        "albedo", "distribution.alpha", "f0", "diffuse", ".kd", ".ks", ".q",             # materials
+        "position", "intensity", "direction", "irradiance",  # lights
+        "eye", "target", "fov",  # camera
+    ])
+
+
+@pytest.fixture(scope="module")
+def deformation_problem():
+    surface = sdf.Union(
+        sdf.Translate(sdf.SmoothUnion(sdf.Translate(sdf.Sphere(0.42, material=0), (-0.25, 0.0, 0.0)),
+                                      sdf.Translate(sdf.Sphere(0.38, material=0), (0.3, 0.12, 0.0)),
+                                      k=0.35), offset=(-1.15, 0.55, 0.0)),
+        sdf.Translate(sdf.Twist(sdf.Box((0.35, 0.45, 0.35), material=1), rate=0.8, radius=0.5),
+                      offset=(0.0, 0.55, 0.0)),
+        sdf.Translate(sdf.Rotate(sdf.Bend(sdf.Box((0.5, 0.35, 0.3), material=2), rate=0.6,
+                                          radius=0.65), axis=(1.0, 0.0, 0.0), angle=-60.0),
+                      offset=(1.15, 0.55, 0.0)),
+        sdf.Translate(sdf.Displace(sdf.Sphere(0.5, material=3), sdf.SineDisplacement(3.0),
+                                   amplitude=0.04), offset=(-1.2, -0.6, 0.0)),
+        sdf.Translate(sdf.Repeat(sdf.Sphere(0.36, material=4), period=(0.85, 0.0, 0.0),
+                                 count=(1, 0, 0)), offset=(0.65, -0.6, 0.0)),
+    )
+    materials = [Lambert(c) for c in
+                 [(0.7, 0.3, 0.3), (0.3, 0.7, 0.3), (0.3, 0.3, 0.7), (0.6, 0.6, 0.2), (0.2, 0.6, 0.6)]]
+    scene = jr.Scene(surface, materials, [jr.PointLight((0.5, 2.0, -3.0), (25.0, 25.0, 25.0))],
+                     background=0.05)
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.0, -3.3), target=(0.0, 0.0, 0.0), fov=42.0,
+                                  width=36, height=24)
+    return Problem(scene, camera, FD)
+
+
+@pytest.mark.slow
+def test_deformation_blend_and_repetition_gradients_match_finite_differences(deformation_problem):
+    p = deformation_problem
+    assert p.mask.sum() >= 60
+    p.check([".child.k", "children_[1].child.rate", "children_[2].child.child.rate", "amplitude",
+             "frequency", "period", "background"])
+
+
+# -- depth 2: through mirrors and glass ----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def whitted_problem():
+    surface = sdf.Union(
+        sdf.Translate(sdf.Sphere(0.8, material=0), offset=(-0.95, 0.0, 0.0)),
+        sdf.Translate(sdf.Sphere(0.8, material=1), offset=(0.95, 0.0, 0.0)),
+        sdf.Plane(normal=(0.0, 0.0, -1.0), offset=-3.0, material=2),   # wall behind, z = 3
+        sdf.Plane(normal=(0.05, 0.0, 1.0), offset=-8.0, material=3),   # wall behind the camera
+    )
+    materials = [Mirror((0.9, 0.8, 0.7)), Dielectric(1.5, absorption=(0.1, 0.2, 0.3)),
+                 Lambert((0.6, 0.5, 0.4)), Lambert((0.3, 0.5, 0.6))]
+    lights = [jr.PointLight((0.3, 2.5, -1.0), (30.0, 30.0, 30.0)),
+              jr.PointLight((0.0, 1.0, 2.0), (10.0, 12.0, 14.0))]
+    scene = jr.Scene(surface, materials, lights, background=0.0)
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.2, -3.2), target=(0.0, 0.0, 0.0), fov=40.0,
+                                  width=32, height=20)
+    # Surfaces facing the camera within 30°: reflected rays then all reach the wall
+    # behind the camera and refracted ones the wall behind the spheres (no outline in
+    # the secondary images either).
+    return Problem(scene, camera, FD.replace(max_depth=2), facing=np.cos(np.radians(30.0)))
+
+
+def test_gradients_through_reflection_and_refraction_at_depth_2(whitted_problem):
+    p = whitted_problem
+    # The window must include pixels on both spheres.
+    assert p.mask[:, :16].sum() >= 8 and p.mask[:, 16:].sum() >= 8
+    p.check(["tint", "eta", "absorption", "radius", ".offset", "albedo", "position",
+             "intensity", "eye", "fov"])
+
+
+# -- closed forms and invariances ----------------------------------------------------
+
+
+def test_plane_moved_along_its_normal_moves_t_at_minus_one_over_cos():
+    """t = (c − n·o) / (n·d) for the plane n·p = c: moving the plane along its normal by s
+    moves the hit at dt/ds = 1 / (n·d) = −1 / cos θ, exactly, through a translation node
+    and through the plane's offset, with both root solvers."""
+    o = jnp.array([0.3, 2.0, -1.0])
+    n = jnp.array([0.0, 1.0, 0.0])
+    tilts = jnp.array([0.0, 0.4, 1.2, 2.5])
+    d = jax.vmap(lambda a: jr.vecmath.normalize(jnp.array([jnp.sin(a), -1.0, 0.2])))(tilts)
+
+    @jax.jit
+    def rates(d):
+        def translate(s, d):
+            plane = sdf.Translate(sdf.Plane(normal=n, offset=0.0), offset=s * n)
+            return jr.sphere_trace(plane, o, d, FD).t
+
+        def offset(c, d):
+            settings = FD.replace(root_solver="optimistix")
+            return jr.sphere_trace(sdf.Plane(n, c), o, d, settings).t
+
+        return (jax.vmap(jax.grad(translate), (None, 0))(0.0, d),
+                jax.vmap(jax.grad(offset), (None, 0))(0.0, d))
+
+    cos = -np.asarray(d @ n)
+    for g in rates(d):
+        np.testing.assert_allclose(np.asarray(g), -1.0 / cos, rtol=1e-12)
+
+
+def _surface_fixed_scene(t):
+    """Shapes whose surfaces do not move when θ moves along `SURFACE_FIXED_TANGENT`."""
+    placed = lambda node, x: sdf.Translate(node, offset=(x, 0.0, 0.0))  # noqa: E731
+    return sdf.Union(
+        # a sphere rotated about its centre
+        placed(sdf.Rotate(sdf.Sphere(0.45), axis=(0.2, 1.0, 0.3), angle=t[0]), -1.6),
+        # a torus turned about its own axis
+        placed(sdf.Rotate(sdf.Torus(0.4, 0.15), axis=(0.0, 1.0, 0.0), angle=t[1]), -0.55),
+        # s·R constant: Scale(Sphere(R), s)
+        placed(sdf.Scale(sdf.Sphere(t[2]), factor=t[3]), 0.55),
+        # two translations with a constant sum
+        sdf.Translate(sdf.Translate(sdf.Sphere(0.4), offset=t[4:7]), offset=t[7:10]),
+        # a twist and a bend about the axes of a centred sphere
+        placed(sdf.Bend(sdf.Twist(sdf.Sphere(0.4), rate=t[10], radius=0.5), rate=t[11],
+                        radius=0.5), -1.0),
+        # a box hidden inside a sphere
+        placed(sdf.Union(sdf.Sphere(0.45), sdf.Translate(sdf.Box(t[12:15]), t[15:18])), 0.2),
+        # a plane slid within itself
+        sdf.Translate(sdf.Plane((0.0, 1.0, 0.0), -0.6), offset=t[18:21]),
+    )
+
+
+SURFACE_FIXED_THETA = [20.0, 15.0, 0.25, 1.6, 1.6, -0.6, 0.0, -0.1, 0.0, 0.1, 0.7, 0.4,
+                       0.2, 0.2, 0.2, 0.1, 0.0, 0.0, 0.1, 0.0, 0.2]
+SURFACE_FIXED_TANGENT = [1.0, 1.0, -0.25, 1.6, 1.0, -1.0, 0.5, -1.0, 1.0, -0.5, 1.0, 1.0,
+                         1.0, 0.5, 0.2, 1.0, -1.0, 0.0, 1.0, 0.0, -0.5]
+
+
+def _surface_fixed_image_tangent(silhouette):
+    camera = jr.PerspectiveCamera(eye=(0.3, 1.2, -4.0), target=(0.0, 0.0, 0.0), fov=48.0,
+                                  width=20, height=10)
+    settings = FD.replace(silhouette=silhouette)
+    light = [jr.PointLight((1.0, 3.0, -2.0), (20.0, 20.0, 20.0))]
+
+    @jax.jit
+    def tangent(theta, v):
+        def image(t):
+            scene = jr.Scene(_surface_fixed_scene(t), [Lambert(0.7)], light, background=0.2)
+            return jr.render(scene, camera, settings).rgb
+        return jax.jvp(image, (theta,), (v,))
+
+    img, dimg = tangent(jnp.asarray(SURFACE_FIXED_THETA, jnp.float64),
+                        jnp.asarray(SURFACE_FIXED_TANGENT, jnp.float64))
+    assert np.ptp(np.asarray(img)) > 0.05  # the shapes are in view
+    return float(np.max(np.abs(np.asarray(dimg))))
+
+
+def test_shape_gradients_vanish_when_the_surface_is_held_fixed():
+    """The derivative of the whole image along parameter directions that leave every
+    surface unchanged (rotating a sphere about its centre, a torus about its axis,
+    s·R fixed, two translations with a fixed sum, twisting and bending a centred sphere,
+    moving a box hidden inside a sphere, sliding a plane within itself) is 0."""
+    assert _surface_fixed_image_tangent(False) < 1e-9
+
+
+@pytest.mark.slow
+def test_shape_gradients_vanish_when_the_surface_is_held_fixed_with_silhouettes():
+    """The same with the silhouette estimator on: outlines that do not move have no
+    gradient either."""
+    assert _surface_fixed_image_tangent(True) < 1e-9
+
+
+def test_optimistix_and_hand_written_polish_agree_in_float64():
+    """Values and gradients of the hit distance (w.r.t. every scene leaf and the ray) of
+    the two root solvers agree to 1e-6 at newton_steps = 2, on rays that hit a sphere,
+    a rotated box, a smooth blend with a twisted box and a displaced torus."""
+    shape = sdf.Union(
+        sdf.Translate(sdf.Sphere(0.5), (-1.2, 0.6, 0.0)),
+        sdf.Translate(sdf.Rotate(sdf.Box((0.4, 0.35, 0.3)), axis=(1.0, 1.0, 0.0), angle=25.0),
+                      offset=(0.0, 0.6, 0.2)),
+        sdf.Translate(sdf.SmoothUnion(sdf.Translate(sdf.Sphere(0.35), (0.25, 0.0, 0.0)),
+                                      sdf.Twist(sdf.Box((0.25, 0.45, 0.25)), 0.7), k=0.2),
+                      offset=(1.2, 0.6, 0.0)),
+        sdf.Translate(sdf.Displace(sdf.Torus(0.5, 0.2), sdf.SineDisplacement(3.0), amplitude=0.03),
+                      offset=(0.0, -0.6, 0.0)),
+    )
+    rng = np.random.default_rng(1)
+    targets = np.array([[-1.2, 0.6, 0.0], [0.0, 0.6, 0.0], [1.2, 0.6, 0.0], [0.5, -0.6, 0.0]])
+    targets = np.repeat(targets, 4, axis=0) + rng.uniform(-0.12, 0.12, (16, 3))
+    origins = np.tile([0.0, 0.0, -4.0], (16, 1))
+    directions = targets - origins
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    base = jr.RenderSettings(dtype="float64", newton_steps=2)
+
+    @eqx.filter_jit
+    def value_grad(shape, o, d, solver):
+        settings = base.replace(root_solver=solver)
+        f = lambda shape, o, d: jr.sphere_trace(shape, o, d, settings).t  # noqa: E731
+
+        def one(o, d):
+            return (f(shape, o, d), jax.grad(lambda s: f(s, o, d))(shape),
+                    jax.grad(f, argnums=(1, 2))(shape, o, d))
+        return jax.vmap(one)(o, d)
+
+    o, d = jnp.asarray(origins), jnp.asarray(directions)
+    hits = jax.vmap(lambda o, d: jr.sphere_trace(shape, o, d, base).hit)(o, d)
+    assert int(hits.sum()) >= 14
+    a = value_grad(shape, o, d, "newton")
+    b = value_grad(shape, o, d, "optimistix")
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        x, y = np.asarray(x), np.asarray(y)
+        assert np.allclose(x, y, rtol=1e-6, atol=1e-6 * max(1.0, np.max(np.abs(x))))
+    # Gradients with respect to the scene are not all 0 (the test compares something).
+    assert max(float(np.max(np.abs(np.asarray(x)))) for x in jax.tree_util.tree_leaves(a[1])) > 0.1
+
+
+def test_gradient_memory_and_program_do_not_grow_with_max_steps():
+    """The gradient program of a render is the same size at max_steps 64 and 1024 (the
+    march is a loop with a static bound, not unrolled, and not differentiated) and
+    needs the same temporary memory (XLA's memory analysis) within 10 %."""
+    scene = jr.Scene(sdf.Translate(sdf.Sphere(1.0), (0.0, 0.2, 0.0)), [Lambert(0.7)],
+                     [jr.PointLight((1.0, 3.0, -2.0), (20.0, 20.0, 20.0))])
+    camera = jr.PerspectiveCamera(width=8, height=8)
+
+    def measure(max_steps):
+        settings = jr.RenderSettings(max_steps=max_steps, shadow_steps=max_steps)
+        grad = jax.grad(lambda s: jnp.mean(jr.render(s, camera, settings).rgb))
+        radius = jnp.asarray(1.0, jnp.float32)
+        f = lambda r: grad(eqx.tree_at(lambda s: s.surface.child.radius, scene, r))  # noqa: E731
+        jaxpr = jax.make_jaxpr(f)(radius)
+        compiled = jax.jit(f).lower(radius).compile()
+        memory = compiled.memory_analysis()
+        temp = None if memory is None else memory.temp_size_in_bytes
+        return len(str(jaxpr)), temp
+
+    size64, temp64 = measure(64)
+    size1024, temp1024 = measure(1024)
+    assert abs(size1024 - size64) <= 16  # only the printed constant differs
+    if temp64 is not None:
+        assert abs(temp1024 - temp64) <= 0.1 * max(temp64, 1)
+
+
+# -- the extremes: finite values and gradients with jax_debug_nans ---------------------
+
+
+@pytest.fixture
+def debug_nans():
+    jax.config.update("jax_debug_nans", True)
+    yield
+    jax.config.update("jax_debug_nans", False)
+
+
+def _finite(tree):
+    return all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree_util.tree_leaves(tree)
+               if eqx.is_array(x))
+
+
+def test_sphere_trace_gradients_are_finite_at_the_extremes(debug_nans):
+    """Tangent rays, rays from on and inside the surface and from its centre, a miss,
+    an exhausted budget; and every primitive's gradient at its own centre."""
+    z = [0.0, 0.0, 1.0]
+    cases = {"tangent": [1.0, 0.0, -3.0], "on the surface": [0.0, 0.0, -1.0],
+             "inside": [0.0, 0.3, 0.0], "at the centre": [0.0, 0.0, 0.0],
+             "missing": [3.0, 0.0, -3.0], "far": [0.0, 0.0, -50.0]}
+    origins = jnp.asarray(list(cases.values()))
+    directions = jnp.asarray([z] * len(cases))
+
+    @eqx.filter_jit
+    def grads(shape, o, d, settings):
+        f = lambda shape, o, d: jr.sphere_trace(shape, o, d, settings).t  # noqa: E731
+        return jax.vmap(lambda o, d: (jax.grad(lambda s: f(s, o, d))(shape),
+                                      jax.grad(f, argnums=(1, 2))(shape, o, d)))(o, d)
+
+    sphere = sdf.Translate(sdf.Sphere(1.0), (0.0, 0.0, 0.0))
+    settings = jr.RenderSettings(dtype="float64")
+    assert _finite(grads(sphere, origins, directions, settings))
+    assert _finite(grads(sphere, origins, directions, settings.replace(max_steps=2)))
+    for shape in (sdf.Sphere(0.5), sdf.Box((0.5, 0.5, 0.5)), sdf.Torus(0.6, 0.2),
+                  sdf.Cylinder(0.4, 0.5), sdf.Capsule(0.5, 0.2), sdf.Cone(0.5, 1.0),
+                  sdf.Ellipsoid((0.5, 0.3, 0.4)), sdf.RoundBox((0.5, 0.4, 0.3), 0.1)):
+        g = eqx.filter_grad(lambda s, p: s(p), )(shape, jnp.zeros(3))
+        assert _finite(g) and _finite(jax.grad(lambda p: shape(p))(jnp.zeros(3))), shape
+
+
+@pytest.fixture(scope="module")
+def extreme_scene():
+    """Spheres of glass (η = 1.5: total internal reflection and critical angles at their
+    rims), of η = 1 (no interface), of a GGX conductor-like gloss with roughness 1e-4,
+    and a Lambert one, on a floor, under a point light."""
+    surface = sdf.Union(
+        sdf.Translate(sdf.Sphere(0.5, material=0), (-1.5, 0.0, 0.0)),
+        sdf.Translate(sdf.Sphere(0.5, material=1), (-0.5, 0.0, 0.0)),
+        sdf.Translate(sdf.Sphere(0.5, material=2), (0.5, 0.0, 0.0)),
+        sdf.Translate(sdf.Sphere(0.5, material=3), (1.5, 0.0, 0.0)),
+        sdf.Plane((0.0, 1.0, 0.0), -0.5, material=3),
+    )
+    materials = [Dielectric(1.5), Dielectric(1.0), CookTorrance(GGX(1e-4), SchlickFresnel(0.9)),
+                 Lambert(0.6)]
+    return jr.Scene(surface, materials, [jr.PointLight((1.0, 3.0, -2.0), (20.0, 20.0, 20.0))],
+                    background=0.1)
+
+
+def _extreme_render(scene, where, settings):
+    eye, target = (((0.0, 0.6, -4.0), (0.0, 0.0, 0.0)) if where == "outside"
+                   else ((-1.5, 0.0, 0.0), (-1.5, 0.0, 1.0)))
+    camera = jr.PerspectiveCamera(eye=eye, target=target, fov=60.0, width=12, height=6)
+    value, grads = _render_value_and_grad(scene, camera, settings)
+    assert np.isfinite(float(value)) and _finite(grads)
+
+
+@pytest.mark.parametrize("where", ["outside", "inside"])
+def test_render_gradients_are_finite_at_the_extremes(extreme_scene, where, debug_nans):
+    """With shadows and one level of reflection and refraction, from a camera outside and
+    one at the centre of the glass sphere (rays that start inside a surface)."""
+    _extreme_render(extreme_scene, where, jr.RenderSettings(dtype="float64", max_depth=1))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("where", ["outside", "inside"])
+def test_render_gradients_are_finite_at_the_extremes_with_silhouettes(extreme_scene, where,
+                                                                      debug_nans):
+    """The same at depth 2 with the silhouette estimator on."""
+    _extreme_render(extreme_scene, where,
+                    jr.RenderSettings(dtype="float64", max_depth=2, silhouette=True))
+
+
+@eqx.filter_jit
+def _render_value_and_grad(scene, camera, settings):
+    loss = lambda sc, cam: jnp.mean(jr.render(sc, cam, settings).rgb)  # noqa: E731
+    return eqx.filter_value_and_grad(lambda args: loss(*args))((scene, camera))
+
+
+def test_refraction_at_exactly_the_critical_angle_has_finite_gradients(debug_nans):
+    """A ray inside glass (η = 1.5) meets a flat interface at exactly θc = asin(1/η)."""
+    from jaxrt.integrator import trace_radiance
+
+    eta = 1.5
+    theta = np.arcsin(1.0 / eta)
+    glass = sdf.Plane((0.0, 1.0, 0.0), 0.0, material=0)   # glass below y = 0
+    ceiling = sdf.Plane((0.0, -1.0, 0.0), -2.0, material=1)  # a ceiling at y = 2
+    scene = jr.Scene(sdf.Union(glass, ceiling), [Dielectric(eta), Lambert(0.5)],
+                     [jr.PointLight((0.0, 1.0, 0.0), (5.0, 5.0, 5.0))], background=0.2)
+    settings = jr.RenderSettings(dtype="float64", max_depth=1)
+    origin = jnp.array([0.0, -1.0, 0.0])
+    direction = jnp.array([np.sin(theta), np.cos(theta), 0.0])
+
+    @eqx.filter_jit
+    def value_and_grads(scene, origin, direction):
+        def radiance(scene, origin, direction):
+            return jnp.sum(trace_radiance(scene, origin, direction, jnp.zeros(2), settings)["rgb"])
+        return (radiance(scene, origin, direction),
+                jax.grad(radiance, argnums=(0, 1, 2))(scene, origin, direction))
+
+    value, grads = value_and_grads(scene, origin, direction)
+    assert np.isfinite(float(value)) and _finite(grads)
+
+
+def _tiny_scene(scale):
+    s = scale
+    surface = sdf.Union(sdf.Translate(sdf.Sphere(0.8 * s, material=0), (0.0, 0.0, 0.0)),
+                        sdf.Plane((0.0, 1.0, 0.0), -0.8 * s, material=1))
+    scene = jr.Scene(surface, [Lambert(0.6), Lambert(0.5)],
+                     [jr.PointLight((s, 3.0 * s, -2.0 * s), (20.0 * s * s,) * 3)], background=0.1)
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.5 * s, -3.5 * s), target=(0.0, 0.0, 0.0), fov=45.0,
+                                  width=6, height=5)
+    return scene, camera
+
+
+def test_gradients_are_finite_and_scale_with_the_scene(debug_nans):
+    """Scaling the scene by s (lengths; light intensity by s², so that irradiance is
+    unchanged; epsilons with the scene) leaves the image unchanged and divides the
+    radius gradient by s: the scenes at s = 1e-3 and 1e3 agree; everything is finite."""
+
+    def value_grad(scale):
+        scene, camera = _tiny_scene(scale)
+        settings = FD.replace(shadows="hard", hit_epsilon=1e-7 * scale, max_distance=100.0 * scale)
+        value, grads = _render_value_and_grad(scene, camera, settings)
+        assert np.isfinite(float(value)) and _finite(grads), scale
+        return float(value), float(grads[0].surface.children_[0].child.radius)
+
+    v_small, g_small = value_grad(1e-3)
+    v_large, g_large = value_grad(1e3)
+    assert v_small == pytest.approx(v_large, rel=1e-6)
+    assert g_small * 1e-3 == pytest.approx(g_large * 1e3, rel=1e-5)
