@@ -33,6 +33,9 @@ def main(argv=None):
     ap.add_argument("--scenes", default=None, help="comma-separated subset")
     ap.add_argument("--out", default=None)
     ap.add_argument("--quick", action="store_true", help="the config's [quick] overrides")
+    ap.add_argument("--settings", default=None,
+                    help="comma-separated setting labels to (re)measure; a scene's other rows "
+                         "are kept from the last results.json")
     args = ap.parse_args(argv)
     cfg = tomllib.loads(Path(args.config).read_text())
     if args.quick:
@@ -56,7 +59,9 @@ def main(argv=None):
     for sc in cfg["scenes"]:
         if wanted and sc["name"] not in wanted:
             continue
-        results["scenes"][sc["name"]] = run_scene(sc, cfg, jr, out_dir)
+        only = args.settings.split(",") if args.settings else None
+        kept = [r for r in results["scenes"].get(sc["name"], []) if only and r["setting"] not in only]
+        results["scenes"][sc["name"]] = run_scene(sc, cfg, jr, out_dir, only, kept)
         md = [f"# Speed against accuracy ({info['device']}, {info['backend']}, "
               f"{info['cpu_cores']} cores, jax {info['jax']})", "",
               "Times: CPU medians after compilation on a 2-core machine shared with other "
@@ -77,17 +82,26 @@ def _merge(a, b):
     return out
 
 
-def run_scene(sc, cfg, jr, out_dir):
+def run_scene(sc, cfg, jr, out_dir, only=None, kept=()):
     scene, camera, base = jr.config.load(ROOT / sc["path"], width=sc["width"], height=sc["height"])
     base = base.replace(**sc.get("settings", {}))
     ref_settings = base.replace(**cfg["reference"], **sc.get("reference", {}))
     repeats = cfg.get("repeats", 3)
     print(f"\n== {sc['name']} ({sc['width']}x{sc['height']}): reference {ref_settings}", flush=True)
-    t0 = time.perf_counter()
-    ref = jr.render(scene, camera, ref_settings)
-    ref_rgb, ref_depth = np.asarray(ref.rgb, np.float64), np.asarray(ref.depth, np.float64)
-    ref_hit = np.asarray(ref.coverage) > 0.5
-    print(f"reference rendered in {time.perf_counter() - t0:.1f} s", flush=True)
+    # the reference is cached next to the results (it takes minutes)
+    cache = out_dir / f"reference_{sc['name']}.npz"
+    key = repr((sc["path"], sc["width"], sc["height"], ref_settings))
+    if cache.exists() and str(np.load(cache)["key"]) == key:
+        z = np.load(cache)
+        ref_rgb, ref_depth, ref_hit = z["rgb"], z["depth"], z["hit"]
+        print("reference from", cache, flush=True)
+    else:
+        t0 = time.perf_counter()
+        ref = jr.render(scene, camera, ref_settings)
+        ref_rgb, ref_depth = np.asarray(ref.rgb, np.float64), np.asarray(ref.depth, np.float64)
+        ref_hit = np.asarray(ref.coverage) > 0.5
+        np.savez(cache, rgb=ref_rgb, depth=ref_depth, hit=ref_hit, key=key)
+        print(f"reference rendered in {time.perf_counter() - t0:.1f} s", flush=True)
 
     settings = [("base", "scene settings", base)]
     dials = cfg["dials"]
@@ -108,8 +122,10 @@ def run_scene(sc, cfg, jr, out_dir):
         s = jr.RenderSettings.preset(preset, base=base) if preset else base
         settings.append((name, "combo", s.replace(**combo)))
 
-    rows = []
+    rows = list(kept)
     for label, dial, s in settings:
+        if only and label not in only:
+            continue
         row = measure(jr, scene, camera, s, repeats)
         err = errors(row.pop("image"), ref_rgb, ref_depth, ref_hit)
         row = dict(setting=label, dial=dial, **row, **err)

@@ -106,15 +106,21 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Fal
         return vjp(g)
 
     run.defvjp(run_fwd, run_bwd)
-    try:
-        return run(dyn, samples)
-    except Unsupported as e:
-        if settings.backend != "auto":
-            raise
-        # "auto" falls back to the vmapped program for what lanes cannot run
-        warnings.warn(f"RenderSettings(backend='auto'): {e}; rendering with backend='jax'",
-                      stacklevel=3)
-        return reference(params, samples)
+    if settings.backend == "auto":
+        # "auto" falls back to the vmapped program for what lanes cannot run. The test
+        # traces the lane program abstractly, apart from the caller's trace (an exception
+        # in the middle of that trace would leave constants behind in it).
+        def abstract(x):
+            return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
+
+        try:
+            jax.eval_shape(lambda d, s: run(d, s), jax.tree_util.tree_map(abstract, dyn),
+                           abstract(samples))
+        except Unsupported as e:
+            warnings.warn(f"RenderSettings(backend='auto'): {e}; rendering with backend='jax'",
+                          stacklevel=3)
+            return reference(params, samples)
+    return run(dyn, samples)
 
 
 def tile_shape(block, grid, pow2=False):
