@@ -117,12 +117,19 @@ def _const_lane(c, dtype, ctx):
     dtype = np.dtype(dtype)
     if ctx.anchor is None:
         return jnp.broadcast_to(jnp.asarray(c, dtype), ctx.block)
-    # A fresh traced zero each time (not cached on ctx): a zero staged inside a loop body
-    # must not be reused outside it, where it would be a leaked tracer.
-    zero = lax.convert_element_type(ctx.anchor * 0, np.int32 if dtype == np.dtype(bool) else dtype)
-    if dtype == np.dtype(bool):
-        return (zero + np.int32(bool(c))) != 0
-    return zero + np.asarray(c, dtype)[()]
+    # Cached per trace scope (ctx.scopes: one dict per loop body being traced): a lane
+    # staged inside a loop body must not be reused outside it (a leaked tracer), and
+    # within a scope each constant is one lane, not one multiply-add per use.
+    key = (dtype.str, np.asarray(c, dtype).tobytes())
+    cache = ctx.scopes[-1]
+    if key not in cache:
+        zero = lax.convert_element_type(ctx.anchor * 0,
+                                        np.int32 if dtype == np.dtype(bool) else dtype)
+        if dtype == np.dtype(bool):
+            cache[key] = (zero + np.int32(bool(c))) != 0
+        else:
+            cache[key] = zero + np.asarray(c, dtype)[()]
+    return cache[key]
 
 
 class _Ctx:
@@ -131,7 +138,7 @@ class _Ctx:
     def __init__(self, block, any_lane, unroll, materialize=False, fast_math=False):
         self.fast_math = fast_math
         self.anchor = None
-        self.zeros = {}
+        self.scopes = [{}]
         self.unsupported = frozenset()
         self.block = block
         self.any_lane = any_lane
@@ -737,8 +744,12 @@ def _while(eqn, ins, ctx):
         return flat, active
 
     def body_fn(state):
-        for _ in range(ctx.unroll):
-            state = step(state)
+        ctx.scopes.append({})
+        try:
+            for _ in range(ctx.unroll):
+                state = step(state)
+        finally:
+            ctx.scopes.pop()
         return state
 
     def cond_fn(state):
