@@ -192,7 +192,7 @@ def run(cfg, out_dir):
             name = next(iter(cfg["recursions"]))
             for row, depth, b in zip(mode_rows, depths, images):
                 if depth in first:
-                    row["max_abs_diff_to_" + name] = float(np.abs(first[depth] - b).max())
+                    row["max_abs_diff_to_recursion_" + name] = float(np.abs(first[depth] - b).max())
         rows += mode_rows
     results = {
         "resolution": [camera.width, camera.height],
@@ -216,7 +216,8 @@ def main(argv=None):
     r = run(cfg, args.out)
     w, h = r["resolution"]
     print(f"glass_scene: {w}×{h}, {r['spp']} spp, on {r['device']} ({r['cpu_count']} cores)")
-    print("  (wall seconds, and CPU seconds of this process in brackets)")
+    print("  (wall seconds, and CPU seconds of this process in brackets; |Δ| to the deepest")
+    print("   depth of the same recursion)")
     print("  recursion  depth  ray slots  compile (s)        render (s)        mean |Δ| to deepest  max |Δ|")
     for row in r["depths"]:
         print(f"  {row['recursion']:9s}  {row['max_depth']:5d}  {row['ray_slots']:9d}  "
@@ -224,7 +225,7 @@ def main(argv=None):
               f"  {row['mean_abs_diff_to_deepest']:19.5f}  {row['max_abs_diff_to_deepest']:.4f}")
     others = [row for row in r["depths"] if row["recursion"] != r["depths"][0]["recursion"]]
     if others:
-        diffs = [row[k] for row in others for k in row if k.startswith("max_abs_diff_to_")]
+        diffs = [row[k] for row in others for k in row if k.startswith("max_abs_diff_to_recursion_")]
         if diffs:
             print(f"  the recursions agree: max |Δ| between their images {max(diffs):.2e}")
     print(f"wrote {args.out}/glass_scene_d*.png, glass_scene_depths.png, glass_scene.exr, results.json")
