@@ -19,15 +19,16 @@ class Image(eqx.Module):
     albedo    [H, W, 3] base colour of the material hit (0 on a miss).
     steps     [H, W] sphere-tracing steps of the primary ray.
     coverage  [H, W] fraction of the pixel's samples that hit a surface.
-    Values are averaged over the pixel's samples (box filter).
+    Values are averaged over the pixel's samples (box filter). AOVs left out of
+    `RenderSettings.aovs` are None.
     """
 
     rgb: jnp.ndarray
-    depth: jnp.ndarray
-    normal: jnp.ndarray
-    albedo: jnp.ndarray
-    steps: jnp.ndarray
-    coverage: jnp.ndarray
+    depth: jnp.ndarray | None = None
+    normal: jnp.ndarray | None = None
+    albedo: jnp.ndarray | None = None
+    steps: jnp.ndarray | None = None
+    coverage: jnp.ndarray | None = None
 
 
 def render(scene, camera, settings=None):
@@ -52,7 +53,7 @@ def _render(scene, camera, settings):
         out = trace_radiance(scene, o, d, cone, settings)
         if settings.silhouette:
             out = silhouette.blend(scene, camera, xy, out, settings)
-        return out
+        return {k: out[k] for k in ("rgb",) + settings.aovs}
 
     def trace_rows(params, samples, rows):
         """Every sample of `rows` image rows (all of them, or one device's band)."""

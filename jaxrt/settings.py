@@ -8,6 +8,7 @@ _DTYPES = ("float32", "float64")
 _BACKENDS = ("jax", "fused", "pallas", "auto")
 _ROOT_SOLVERS = ("newton", "optimistix")
 _RECURSIONS = ("unrolled", "scan")
+AOVS = ("depth", "normal", "albedo", "steps", "coverage")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +75,10 @@ class RenderSettings:
                        (pallas on a GPU, fused elsewhere; falls
                        back to jax where lanes cannot run the program). Gradients always come from
                        the "jax" program.
+      aovs             the AOVs that `render` returns besides rgb (a subset of
+                       depth, normal, albedo, steps, coverage; the others are None in
+                       the Image). Fewer AOVs: less memory written per pixel (the
+                       fused kernels store only these), e.g. aovs=() for rgb only.
       devices          local devices to shard the image's rows over (`jaxrt.sharding`;
                        1: no sharding, default; 0: all local devices).
       silhouette       silhouette-aware pixel coverage (`jaxrt.silhouette`). Off
@@ -126,6 +131,7 @@ class RenderSettings:
     silhouette_width: float = 1.0
     root_solver: str = "newton"
     recursion: str = "unrolled"
+    aovs: tuple = AOVS
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -134,6 +140,11 @@ class RenderSettings:
                 raise ValueError(f"RenderSettings.{field} = {value!r}, expected {expected}")
 
         need(_is_int(self.max_steps) and self.max_steps >= 1, "max_steps", "an integer ≥ 1")
+        if isinstance(self.aovs, list):  # from TOML
+            object.__setattr__(self, "aovs", tuple(self.aovs))
+        need(isinstance(self.aovs, tuple) and set(self.aovs) <= set(AOVS)
+             and len(set(self.aovs)) == len(self.aovs), "aovs",
+             f"distinct names among {AOVS}")
         need(_is_num(self.hit_epsilon) and self.hit_epsilon > 0, "hit_epsilon", "a number > 0")
         need(_is_num(self.pixel_epsilon) and self.pixel_epsilon >= 0, "pixel_epsilon", "a number ≥ 0")
         need(_is_num(self.max_distance) and self.max_distance > 0, "max_distance", "a number > 0")

@@ -1,7 +1,7 @@
 """Rendering on several devices: the image's rows sharded with `jax.sharding`.
 
-`RenderSettings(devices=D)` makes `render` split the image into D bands of rows, one
-per local device, with `jax.shard_map` over a one-axis `Mesh` ("pixels"): each device
+`RenderSettings(devices=D)` makes `render` split the image into bands of rows dealt
+to the local devices in turn (`BAND_ROWS` rows each), with `jax.shard_map` over a one-axis `Mesh` ("pixels"): each device
 traces its band with the whole scene (replicated, a few kilobytes) and the bands are
 the shards of the output arrays. Rays are independent, so the devices never talk to
 each other; the image is the same as on one device (the same program on the same
@@ -49,25 +49,56 @@ def pixel_mesh(devices):
     return Mesh(np.asarray(devices), (AXIS,))
 
 
-def shard_rows(fn, replicated, samples, rows, devices):
+#: Rows per band when bands are dealt to the devices in turn (`shard_rows`); 0 gives
+#: each device one contiguous band.
+BAND_ROWS = 0
+
+
+def shard_rows(fn, replicated, samples, rows, devices, band_rows=None):
     """`fn(replicated, samples_band, band_rows) -> dict of [band, ...]` on every device.
 
-    `samples` [N, 2] are row-major over `rows` rows; the rows are padded to a multiple
-    of the device count (edge rows, cropped afterwards) and split into equal bands.
-    Returns the dict of [N, ...] arrays, sharded along the first axis.
+    `samples` [N, 2] are row-major over `rows` rows. The rows are cut into bands of
+    `band_rows` (default `BAND_ROWS`) dealt to the D devices in turn (band k to device
+    k mod D), so that every device gets rows from the whole image and the work is
+    balanced even where parts of the image march longer than others (the sky, a
+    horizon). One `all_to_all` then deals the rendered bands back: device j ends with
+    the j-th contiguous block of rows ((D − 1)/D of the image crosses devices once).
+    The rows are padded (edge rows, cropped afterwards) to a multiple of
+    band_rows · D². `band_rows=0`: one contiguous band per device, no exchange.
+    Returns the dict of [N, ...] arrays in image order, sharded along the first axis.
     """
     d = len(devices)
     n = samples.shape[0]
     per_row = n // rows
-    band = math.ceil(rows / d)
-    pad = band * d - rows
+    b = BAND_ROWS if band_rows is None else band_rows
+    if b == 0 or d == 1:  # one contiguous band per device
+        b, bands = math.ceil(rows / d), 1
+    else:  # bands per device: a multiple of d, for the all_to_all
+        b = min(b, math.ceil(rows / d**2))
+        bands = math.ceil(rows / (b * d**2)) * d
+    total = b * d * bands
+    pad = total - rows
     if pad:
         samples = jnp.concatenate([samples, jnp.repeat(samples[-per_row:], pad, axis=0)])
+    chunk = b * per_row  # samples per band
+
+    def deal(x):  # image order -> device order: band k to device k mod d
+        x = x.reshape((bands, d, chunk) + x.shape[1:])
+        return jnp.swapaxes(x, 0, 1).reshape((total * per_row,) + x.shape[3:])
+
     mesh = pixel_mesh(devices)
-    samples = jax.lax.with_sharding_constraint(samples, NamedSharding(mesh, P(AXIS)))
+    samples = jax.lax.with_sharding_constraint(deal(samples), NamedSharding(mesh, P(AXIS)))
+
+    def undeal(x):
+        """This device's bands (k = m·d + i for local m) -> its block of image rows."""
+        if bands == 1:
+            return x
+        x = x.reshape((d, bands // d, chunk) + x.shape[1:])
+        x = jax.lax.all_to_all(x, AXIS, 0, 0)  # [source device i, m, ...]
+        return jnp.swapaxes(x, 0, 1).reshape((bands * chunk,) + x.shape[3:])
 
     def body(rep, s):
-        return fn(rep, s, band)
+        return jax.tree_util.tree_map(undeal, fn(rep, s, total // d))
 
     out = jax.shard_map(body, mesh=mesh, in_specs=(P(), P(AXIS)), out_specs=P(AXIS),
                         check_vma=False)(replicated, samples)

@@ -171,7 +171,8 @@ BAD_SETTINGS = [
     ("normal_mode", "sobel"), ("normal_epsilon", 0.0), ("shadows", "fuzzy"), ("shadow_steps", 0),
     ("penumbra", -8.0), ("shadow_max_distance", 0.0), ("max_depth", -1), ("max_depth", 17),
     ("ray_offset", 0.0), ("spp", 0), ("seed", 0.5), ("wavelengths", -1), ("dtype", "float16"),
-    ("batch_size", 0), ("silhouette", 1),
+    ("batch_size", 0), ("silhouette", 1), ("aovs", ("rgb",)), ("aovs", ("depth", "depth")),
+    ("aovs", "depth"),
 ]
 
 
@@ -181,6 +182,18 @@ def test_settings_reject_bad_values_naming_the_field(field, value):
         jr.RenderSettings(**{field: value})
     with pytest.raises(ValueError, match=f"RenderSettings.{field}"):
         jr.RenderSettings().replace(**{field: value})
+
+
+@pytest.mark.parametrize("backend", ["jax", "fused"])
+def test_aovs_left_out_are_none_and_leave_rgb_unchanged(backend):
+    scene, camera = _counted_scene(), _camera("perspective", (0.0, 0.5, -4.0), (0.0, 0.0, 0.0), 8)
+    settings = jr.RenderSettings(shadows="soft", backend=backend)
+    full = jr.render(scene, camera, settings)
+    some = jr.render(scene, camera, settings.replace(aovs=["depth"]))  # a TOML list
+    assert some.normal is None and some.albedo is None and some.steps is None
+    assert some.coverage is None
+    np.testing.assert_array_equal(np.asarray(some.rgb), np.asarray(full.rgb))
+    np.testing.assert_array_equal(np.asarray(some.depth), np.asarray(full.depth))
 
 
 def test_every_setting_has_a_documented_default():

@@ -32,11 +32,23 @@ SCRIPT = textwrap.dedent(
                                   fov=45.0, width=12, height=8)
     base = jr.RenderSettings(shadows="soft", batch_size=32, dtype="float64")
     one = jr.render(scene, camera, base)
-    for devices in (4, 3):   # 8 rows on 4 devices; on 3 (uneven: padded)
-        img = jr.render(scene, camera, base.replace(devices=devices))
-        for field in ("rgb", "depth", "normal", "albedo", "steps", "coverage"):
-            a, b = np.asarray(getattr(img, field)), np.asarray(getattr(one, field))
-            assert np.allclose(a, b, rtol=1e-12, atol=1e-12), (devices, field, np.abs(a - b).max())
+    # 8 rows on 4 devices; on 3 (uneven: padded); in bands of 16 rows (one per device),
+    # dealt in turn row by row, and contiguous
+    for band_rows in (16, 1, 0):
+        jr.sharding.BAND_ROWS = band_rows
+        jax.clear_caches()
+        for devices in (4, 3):
+            img = jr.render(scene, camera, base.replace(devices=devices))
+            for field in ("rgb", "depth", "normal", "albedo", "steps", "coverage"):
+                a, b = np.asarray(getattr(img, field)), np.asarray(getattr(one, field))
+                assert np.allclose(a, b, rtol=1e-12, atol=1e-12), (band_rows, devices, field,
+                                                                   np.abs(a - b).max())
+    jr.sharding.BAND_ROWS = 16
+    jax.clear_caches()
+    from jaxrt.sharding import shard_rows
+    rows = jnp.arange(10.0).repeat(3)[:, None] * jnp.ones(2)  # 10 rows of 3 samples
+    got = shard_rows(lambda rep, s, r: {"s": s}, (), rows, 10, jax.devices()[:3], band_rows=2)
+    assert np.array_equal(np.asarray(got["s"]), np.asarray(rows)), got["s"]
     img = jr.render(scene, camera, base.replace(devices=4))
     assert len(img.rgb.sharding.device_set) == 4, img.rgb.sharding
     try:

@@ -27,6 +27,9 @@ def main(argv=None):
     ap.add_argument("--width", type=int)
     ap.add_argument("--height", type=int)
     ap.add_argument("--devices", type=int, action="append", help="RenderSettings.devices values")
+    ap.add_argument("--band-rows", type=int, action="append",
+                    help="jaxrt.sharding.BAND_ROWS values (0: one contiguous band per device)")
+    ap.add_argument("--no-trace", action="store_true", help="time only, no profile")
     args = ap.parse_args(argv)
     cfg = tomllib.loads(Path(args.config).read_text())
 
@@ -41,12 +44,17 @@ def main(argv=None):
     scene, camera, base = jr.config.load(ROOT / cfg["scene"], width=args.width or section["width"],
                                          height=args.height or section["height"])
     dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
-    runs = [(name, d) for name in (args.variant or ["pallas-fast"]) for d in (args.devices or [1])]
-    for name, devices in runs:
+    from jaxrt import sharding
+    from jaxrt.kernels import fused
+
+    runs = [(name, d, b) for name in (args.variant or ["pallas-fast"]) for d in (args.devices or [1])
+            for b in ((args.band_rows or [sharding.BAND_ROWS]) if d != 1 else [sharding.BAND_ROWS])]
+    for name, devices, band_rows in runs:
         overrides = dict(cfg["variants"][name])
-        overrides.pop("kernel", None)
+        fused.PALLAS_NUM_WARPS = overrides.pop("kernel", {}).get("num_warps")
+        sharding.BAND_ROWS = band_rows
         settings = base.replace(**overrides, devices=devices)
-        name = f"{name} devices={devices}"
+        name = f"{name} devices={devices}" + (f" band_rows={band_rows}" if devices != 1 else "")
         f = jax.jit(lambda d, settings=settings: _render.__wrapped__(*eqx.combine(d, static), settings))
         f = f.lower(dyn).compile()
         f(dyn).rgb.block_until_ready()
@@ -58,6 +66,8 @@ def main(argv=None):
         out.rgb.block_until_ready()
         print(f"{name}: {1e3 * (time.perf_counter() - t0) / args.calls:.3f} ms per render "
               f"({args.calls} back to back)", flush=True)
+        if args.no_trace:
+            continue
         tmp = tempfile.mkdtemp()
         with jax.profiler.trace(tmp):
             for _ in range(args.calls):
