@@ -140,10 +140,10 @@ def main(argv=None):
         row = dict(name=name, kind="jaxrt", seconds=med, compile_seconds=compile_s,
                    mrays=npix / med / 1e6, settings=overrides, kernel=knobs,
                    **_errors(rgb, ref["centre"]),
-                   depth_error=_depth_error(np.asarray(img.depth), ref_depth,
-                                            np.asarray(img.coverage) > 0.5))
+                   depth_error=None if img.depth is None or img.coverage is None else
+                   _depth_error(np.asarray(img.depth), ref_depth, np.asarray(img.coverage) > 0.5))
         # the same settings through another backend: the same image?
-        key = tuple(sorted((k, v) for k, v in overrides.items() if k not in ("backend", "batch_size")))
+        key = repr(sorted((k, v) for k, v in overrides.items() if k not in ("backend", "batch_size")))
         if key in first_image:
             other, orgb = first_image[key]
             diff = np.abs(rgb - orgb).max(axis=-1)
