@@ -17,8 +17,10 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 import jaxrt as jr
-from jaxrt import sdf
-from jaxrt.bsdf import GGX, CookTorrance, Dielectric, Lambert, Mirror, Phong, SchlickFresnel
+from jaxrt import sdf, spectral
+from jaxrt.bsdf import (GGX, Conductor, CookTorrance, Dielectric, Lambert, Mirror, Phong,
+                        SchlickFresnel, Whitted)
+from jaxrt.heightfield import GridHeight, HeightField, SineHeight
 
 #: Reference settings: float64, a tight epsilon and three Newton steps, so that the
 #: polished hit distance is exact to rounding and finite differences see a smooth image.
@@ -212,6 +214,99 @@ def test_gradients_through_reflection_and_refraction_at_depth_2(whitted_problem)
     assert p.mask[:, :16].sum() >= 8 and p.mask[:, 16:].sum() >= 8
     p.check(["tint", "eta", "absorption", "radius", ".offset", "albedo", "position",
              "intensity", "eye", "fov"])
+
+
+@pytest.fixture(scope="module")
+def specular_materials_problem():
+    """The notes' Whitted material (a Phong base lit directly, constant c_refl/c_trans, η)
+    and a smooth conductor (complex index η + iκ), between two walls, at depth 2."""
+    surface = sdf.Union(
+        sdf.Translate(sdf.Sphere(0.8, material=0), offset=(-0.95, 0.0, 0.0)),
+        sdf.Translate(sdf.Sphere(0.8, material=1), offset=(0.95, 0.0, 0.0)),
+        sdf.Plane(normal=(0.0, 0.0, -1.0), offset=-3.0, material=2),
+        sdf.Plane(normal=(0.05, 0.0, 1.0), offset=-8.0, material=3),
+    )
+    materials = [Whitted(Phong(kd=(0.2, 0.3, 0.25), ks=0.4, q=6.0, normalized=True),
+                         c_refl=(0.3, 0.25, 0.2), c_trans=(0.5, 0.55, 0.6), eta=1.4),
+                 Conductor(eta=(0.2, 0.4, 1.3), k=(3.6, 2.5, 1.9)),
+                 Lambert((0.6, 0.5, 0.4)), Lambert((0.3, 0.5, 0.6))]
+    lights = [jr.PointLight((0.3, 2.5, -1.0), (30.0, 30.0, 30.0)),
+              jr.PointLight((0.0, 1.0, 2.0), (10.0, 12.0, 14.0))]
+    scene = jr.Scene(surface, materials, lights, background=0.0)
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.2, -3.2), target=(0.0, 0.0, 0.0), fov=40.0,
+                                  width=32, height=20)
+    return Problem(scene, camera, FD.replace(max_depth=2), facing=np.cos(np.radians(30.0)))
+
+
+@pytest.mark.slow
+def test_whitted_and_conductor_parameters_through_reflection_and_refraction(
+        specular_materials_problem):
+    """c_refl, c_trans, η and the base's Phong exponent of `Whitted`; η and κ of
+    `Conductor`; with the light and camera parameters, at depth 2."""
+    p = specular_materials_problem
+    assert p.mask[:, :16].sum() >= 8 and p.mask[:, 16:].sum() >= 8
+    p.check(["c_refl", "c_trans", "materials[0].eta", "base.q", "materials[1].eta",
+             "materials[1].k", "position", "intensity", "eye", "fov"])
+
+
+@pytest.fixture(scope="module")
+def dispersion_problem():
+    """Two dispersive glass spheres (Cauchy and Sellmeier indices) in front of a lit wall,
+    rendered spectrally (4 wavelength samples) at depth 2: the refracted rays of each
+    wavelength bend by n(λ), so the image depends on every dispersion coefficient."""
+    surface = sdf.Union(
+        sdf.Translate(sdf.Sphere(0.8, material=0), offset=(-0.95, 0.0, 0.0)),
+        sdf.Translate(sdf.Sphere(0.8, material=1), offset=(0.95, 0.0, 0.0)),
+        sdf.Plane(normal=(0.0, 0.0, -1.0), offset=-3.0, material=2),
+        sdf.Plane(normal=(0.05, 0.0, 1.0), offset=-8.0, material=3),
+    )
+    materials = [Dielectric(spectral.Cauchy(1.45, 0.02, 0.001)),
+                 Dielectric(spectral.Sellmeier((1.04, 0.23, 1.01), (0.006, 0.02, 103.6))),
+                 Lambert((0.6, 0.5, 0.4)), Lambert((0.3, 0.5, 0.6))]
+    lights = [jr.PointLight((0.3, 2.5, -1.0), (30.0, 30.0, 30.0)),
+              jr.PointLight((0.0, 1.0, 2.0), (10.0, 12.0, 14.0))]
+    scene = jr.Scene(surface, materials, lights, background=0.0)
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.2, -3.2), target=(0.0, 0.0, 0.0), fov=40.0,
+                                  width=24, height=14)
+    return Problem(scene, camera, FD.replace(max_depth=2, wavelengths=4),
+                   facing=np.cos(np.radians(30.0)))
+
+
+@pytest.mark.slow
+def test_dispersion_coefficients_get_gradients_through_refraction(dispersion_problem):
+    """Cauchy a, b, c and Sellmeier B, C of dispersive dielectrics, in spectral mode."""
+    p = dispersion_problem
+    assert p.mask[:, :12].sum() >= 6 and p.mask[:, 12:].sum() >= 6
+    p.check(["materials[0].eta.a", "materials[0].eta.b", "materials[0].eta.c",
+             "materials[1].eta.b", "materials[1].eta.c"])
+
+
+def _terrain_scene(height):
+    """A height field under a sphere, lit by a point light, seen from above."""
+    scene = jr.Scene(sdf.Translate(sdf.Sphere(0.4, material=1), (0.9, 0.6, 0.8)),
+                     [Lambert((0.6, 0.5, 0.4)), Lambert((0.3, 0.5, 0.7))],
+                     [jr.PointLight((0.5, 3.0, -1.0), (20.0, 20.0, 20.0))], background=0.2,
+                     heightfields=[HeightField(height, material=0)])
+    camera = jr.PerspectiveCamera(eye=(0.0, 2.0, -2.5), target=(0.0, 0.0, 0.5), fov=50.0,
+                                  width=20, height=14)
+    return scene, camera
+
+
+@pytest.mark.parametrize("kind", ["sine", "grid"])
+def test_height_field_parameters_match_finite_differences(kind):
+    """Gradients through the height-field marcher's polished hit (its own implicit
+    gradient, `jaxrt.heightfield`): a sine swell's amplitude, frequencies, phases and
+    offset, and a bilinear grid's samples; with the light and camera."""
+    if kind == "sine":
+        height = SineHeight(0.15, frequency=(2.0, 1.3), phase=(0.3, 0.2), offset=-0.3)
+        families = ["amplitude", "frequency", "phase", "height.offset"]
+    else:
+        rng = np.random.default_rng(3)
+        height = GridHeight(-0.3 + 0.1 * rng.uniform(-1.0, 1.0, (3, 4)), extent=(-2.0, 2.0, -1.0, 3.0))
+        families = ["heights"]
+    p = Problem(*_terrain_scene(height), FD)
+    assert p.mask.sum() >= 60
+    p.check(families + ["position", "eye", "fov"])
 
 
 # -- closed forms and invariances ----------------------------------------------------
