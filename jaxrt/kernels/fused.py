@@ -44,7 +44,9 @@ PALLAS_NUM_WARPS = None
 #: test is a reduction over the block; inactive lanes keep their state either way).
 UNROLL = 1
 
-#: "fused" on XLA: materialise function results outside loops (`lanes._barrier`).
+#: "fused" on XLA: materialise function results outside loops (`lanes._barrier`). On a
+#: 2-core Sapphire Rapids with jax 0.10.2 this made "fused" 3× faster on the Warp scene
+#: once the stores were reductions (XLA removed the optimization barriers used before).
 MATERIALIZE = True
 
 #: Pallas kernels use `lanes._fast_math` (sqrt via rsqrt; division by shared values as a

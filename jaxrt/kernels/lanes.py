@@ -667,9 +667,22 @@ def _call(eqn, ins, ctx):
     return outs
 
 
+def _store(x):
+    """`x`, computed once into memory: a fusion boundary for XLA on CPUs.
+
+    XLA:CPU removes `optimization_barrier`s before fusion (the `cse_barrier_expander`
+    pass of jax 0.10), so a barrier does not stop a producer from being fused, and so
+    recomputed, into each of its consumers. A reduction is never fused into its
+    consumers: x = max(x, identity) over a stacked axis of two stores x, exactly."""
+    dt = np.dtype(x.dtype)
+    if dt == np.dtype(bool):
+        return lax.reduce_or(jnp.stack([x, jnp.zeros_like(x)]), (0,))
+    low = -np.inf if np.issubdtype(dt, np.floating) else np.iinfo(dt).min
+    return lax.reduce_max(jnp.stack([x, jnp.full_like(x, low)]), (0,))
+
+
 def _barrier(objs):
-    """`optimization_barrier` on the traced lanes of `objs`: XLA then computes them
-    once, instead of fusing (and so duplicating) their whole expression into every
+    """`_store` on the traced lanes of `objs`: XLA then computes them once, instead of fusing (and so duplicating) their whole expression into every
     consumer: a program scalarised into lanes has many consumers per value (each
     component of each output), and XLA's CPU fusion would recompute shared work."""
     flat, where = [], []
@@ -681,7 +694,7 @@ def _barrier(objs):
                 where.append((k, idx))
     if not flat:
         return objs
-    flat = lax.optimization_barrier(flat)
+    flat = [_store(x) for x in flat]
     objs = [o.copy() for o in objs]
     for (k, idx), x in zip(where, flat):
         objs[k][idx] = x
