@@ -780,6 +780,29 @@ def _while(eqn, ins, ctx):
     return [next(results) if k else x for x, k in zip(full_init, keep)]
 
 
+def _scan(eqn, ins, ctx):
+    """`lax.scan`, unrolled: the body once per iteration on that iteration's slices of
+    the scanned inputs (static slices of object arrays: free). A lane program is
+    scalarised anyway, so a scan of length n is n copies of its body (as a Python loop
+    would be); `Union` scans its stacked children this way (`jaxrt.sdf.stack`)."""
+    p = eqn.params
+    nc, nk, length = p["num_consts"], p["num_carry"], p["length"]
+    closed = p["jaxpr"]
+    consts, carry, xs = ins[:nc], list(ins[nc:nc + nk]), ins[nc + nk:]
+    order = range(length - 1, -1, -1) if p["reverse"] else range(length)
+    ys = [None] * length
+    for i in order:
+        outs = _eval_closed(closed, [*consts, *carry, *[x[i, ...] for x in xs]], ctx)
+        carry, ys[i] = list(outs[:nk]), outs[nk:]
+    stacked = []
+    for k, v in enumerate(eqn.outvars[nk:]):
+        out = _obj(v.aval.shape)
+        for i in range(length):
+            out[i, ...] = ys[i][k]
+        stacked.append(out)
+    return carry + stacked
+
+
 def _prune_loop(cond_j, body_j, cconsts, bconsts, used):
     """Drop the carries of a while loop that neither its used results nor its condition
     need (a march that also tracks a closest approach nobody reads, say). Returns the
@@ -892,6 +915,7 @@ _RULES = {
     "scatter-add": _scatter(True),
     "scatter_add": _scatter(True),
     "while": _while,
+    "scan": _scan,
     "cond": _cond,
     "pjit": _call,
     "jit": _call,

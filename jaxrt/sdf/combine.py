@@ -15,6 +15,7 @@ import jax.numpy as jnp
 
 from ..vecmath import safe_div
 from .base import SDF, check_sdf, non_negative
+from .stack import union_eval, union_lipschitz
 
 
 def _min(a, b):
@@ -63,7 +64,18 @@ def op_smooth_intersection(d1, d2, k):
 
 
 class Union(SDF):
-    """Union of any number of shapes: min over children (exact outside)."""
+    """Union of any number of shapes: min over children (exact outside).
+
+    The material is that of the nearest child (the first one on ties). Children of one
+    structure (same node types and static fields, e.g. many `Translate(Sphere)` with
+    one material) are evaluated stacked, `jax.vmap` over their leaves and an argmin,
+    when a group has at least `stack.STACK_THRESHOLD` members: the traced program holds
+    one copy per *kind* of child, so compile time stays flat as children are added
+    (`jaxrt.sdf.stack`). `children_` stays the user-facing field: `eqx.tree_at(lambda
+    s: s.children_[i].radius, ...)` and gradients reach every child.
+
+    Differentiable: every child's parameters.
+    """
 
     children_: tuple
 
@@ -76,15 +88,10 @@ class Union(SDF):
         return self.children_
 
     def eval(self, p):
-        d, m = self.children_[0].eval(p)
-        for child in self.children_[1:]:
-            dc, mc = child.eval(p)
-            m = jnp.where(dc < d, mc, m)
-            d = _min(d, dc)
-        return d, m
+        return union_eval(self.children_, p)
 
     def lipschitz(self):
-        return jnp.max(jnp.stack([c.lipschitz() for c in self.children_]))
+        return union_lipschitz(self.children_)
 
 
 class Intersection(SDF):

@@ -1,0 +1,224 @@
+"""jaxrt.sdf.stack: a Union of many children of one kind is evaluated stacked (one copy
+of the child program per kind). It must be the same function as the loop union (values,
+materials, first child on ties, gradients with respect to every child), its traced
+program must not grow with the number of children, and it must render the same through
+the fused lane backend."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrt as jr
+from jaxrt.sdf import stack
+
+S = jr.sdf
+LOOP = 10**9  # a threshold no group reaches: the loop union
+
+
+def mixed_children():
+    """Interleaved kinds: 10 spheres (material 0), 9 boxes, 8 twisted boxes (L > 1), 3
+    spheres of material 1 (below the threshold: a loop), a plane (y = −2) and a repeated
+    box (ties within a group). Exact ties between groups are in `test_ties_...`: here,
+    where a child in the loop and one in the scan are at the same distance, the two
+    paths may round it differently (by an ulp) and pick different materials."""
+    rng = np.random.default_rng(3)
+    out = []
+    for i in range(10):
+        out.append(S.Translate(S.Sphere(radius=0.2 + 0.3 * rng.uniform(), material=0),
+                               offset=rng.uniform(-2.0, 2.0, 3)))
+        if i < 9:
+            out.append(S.Translate(S.Box(half_extents=rng.uniform(0.1, 0.5, 3), material=1),
+                                   offset=rng.uniform(-2.0, 2.0, 3)))
+        if i < 8:
+            out.append(S.Twist(S.Box(half_extents=(0.3, 0.4, 0.3), material=2), rate=0.5 + rng.uniform()))
+        if i < 3:
+            out.append(S.Translate(S.Sphere(radius=0.3, material=1), offset=rng.uniform(-2.0, 2.0, 3)))
+    out.append(S.Plane(normal=(0.0, 1.0, 0.0), offset=-2.0, material=3))
+    out.append(out[1])
+    return out
+
+
+def points(n=200, seed=0):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-2.5, 2.5, (n, 3))
+    return jnp.asarray(p)
+
+
+@eqx.filter_jit
+def evaluate(union, p, threshold):
+    return jax.vmap(lambda q: stack.union_eval(union.children_, q, threshold))(p)
+
+
+def test_stacking_groups_children():
+    groups = stack.group_by_structure(mixed_children())
+    sizes = sorted(len(ix) for ix, _ in groups)
+    assert sizes == [1, 3, 8, 10, 10]  # plane; spheres m1; twisted boxes; boxes (+ repeat); spheres m0
+    assert sum(len(ix) >= stack.STACK_THRESHOLD for ix, _ in groups) == 3
+
+
+def test_stacked_union_is_the_loop_union():
+    union = S.Union(*mixed_children())
+    p = points()
+    d, m = evaluate(union, p, None)
+    d_loop, m_loop = evaluate(union, p, LOOP)
+    np.testing.assert_allclose(d, d_loop, rtol=1e-14, atol=1e-14)
+    np.testing.assert_array_equal(m, m_loop)
+    # an independent reference: each child alone, the min, the first minimising child
+    each = np.stack([jax.vmap(c)(p) for c in union.children_])
+    first = np.argmin(each, axis=0)
+    mats = np.stack([jax.vmap(c.eval)(p)[1] for c in union.children_])
+    np.testing.assert_allclose(d, each.min(axis=0), rtol=1e-14, atol=1e-14)
+    np.testing.assert_array_equal(m, mats[first, np.arange(len(p))])
+    assert set(np.unique(np.asarray(m)).tolist()) == {0, 1, 2, 3}
+    np.testing.assert_allclose(union.lipschitz(), stack.union_lipschitz(union.children_, LOOP),
+                               rtol=1e-15)
+    assert float(union.lipschitz()) > 1.0  # the twisted boxes
+
+
+def test_ties_go_to_the_first_child():
+    """Exact ties between children of different stacked groups: the material of the
+    child that comes first in the list, in either order of the groups."""
+    sphere = lambda x, m: S.Translate(S.Sphere(radius=0.4, material=m), offset=(x, 0.0, 0.0))  # noqa: E731
+    children = [sphere(5.0, 1)] + [sphere(float(k), 0) for k in range(9)] + [sphere(float(k), 1) for k in range(8)]
+    union = S.Union(*children)
+    p = jnp.array([[3.0, 0.1, 0.0], [5.0, 0.1, 0.0], [8.0, 0.1, 0.0], [0.0, 0.5, 0.0]])
+    each = np.stack([jax.vmap(c)(p) for c in children])
+    assert np.all(np.sum(each[:, :2] == each.min(axis=0)[:2], axis=0) >= 2)  # real ties
+    d, m = evaluate(union, p, None)
+    np.testing.assert_array_equal(m, [0, 1, 0, 0])
+    np.testing.assert_array_equal(m, evaluate(union, p, LOOP)[1])
+    np.testing.assert_allclose(d, each.min(axis=0), rtol=1e-15)
+
+
+def test_stacked_union_gradients_reach_every_child():
+    """d/dθ of Σ_p f(p) w.r.t. every child's leaves, and ∇_p f (normals): equal to the
+    loop's, and nonzero for every child that is nearest to some point."""
+    union = S.Union(*mixed_children())
+    p = points()
+
+    @eqx.filter_jit
+    def loss(u, threshold):
+        return jnp.sum(jnp.sin(evaluate(u, p, threshold)[0]))
+
+    g = eqx.filter_grad(loss)(union, None)
+    g_loop = eqx.filter_grad(loss)(union, LOOP)
+    for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(g_loop)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+    nearest = set(np.asarray(jnp.argmin(jnp.stack([jax.vmap(c)(p) for c in union.children_]), axis=0)).tolist())
+    assert len(nearest) > 20
+    for i in nearest:
+        assert any(np.any(np.asarray(x) != 0.0) for x in jax.tree_util.tree_leaves(g.children_[i]))
+
+    @eqx.filter_jit
+    def normals(threshold):
+        return jax.vmap(jax.grad(lambda q: stack.union_eval(union.children_, q, threshold)[0]))(p)
+
+    np.testing.assert_allclose(normals(None), normals(LOOP), rtol=1e-12, atol=1e-14)
+    # finite differences in float64 for one child's radius
+    r = lambda u: u.children_[4].child.radius  # noqa: E731
+    h = 1e-6
+    fd = (loss(eqx.tree_at(r, union, r(union) + h), None) - loss(eqx.tree_at(r, union, r(union) - h), None)) / (2 * h)
+    np.testing.assert_allclose(g.children_[4].child.radius, fd, rtol=1e-6)
+
+
+def spheres(n):
+    k = int(np.ceil(np.sqrt(n)))
+    return S.Union(*[S.Translate(S.Sphere(radius=0.5, material=0), offset=((i % k) * 1.2, 0.5, (i // k) * 1.2))
+                     for i in range(n)], S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=1))
+
+
+def n_equations(jaxpr, skip=()):
+    """Equations of a jaxpr, counting those of inner jaxprs (loops, calls) too, except
+    those of the primitives named in `skip`."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name not in skip
+        for v in eqn.params.values():
+            for j in v if isinstance(v, (tuple, list)) else (v,):
+                if isinstance(j, jax.extend.core.ClosedJaxpr):
+                    count += n_equations(j.jaxpr, skip)
+                elif isinstance(j, jax.extend.core.Jaxpr):
+                    count += n_equations(j, skip)
+    return count
+
+
+def test_program_size_does_not_grow_with_children():
+    """The traced program (its number of equations) of a union of 8 or 256 spheres is
+    the same size; the loop union's grows with every child."""
+    p = jnp.array([0.1, 0.2, 0.3])
+
+    def size(union, threshold):
+        f = lambda u, q: stack.union_eval(u.children_, q, threshold)  # noqa: E731
+        return n_equations(jax.make_jaxpr(f)(union, p).jaxpr)
+
+    stacked = [size(spheres(n), None) for n in (8, 64, 256)]
+    assert stacked[0] == stacked[1] == stacked[2]
+    loop = [size(spheres(n), LOOP) for n in (8, 64)]
+    assert loop[1] - loop[0] >= 56 * 5
+    # the render program too (trace only: no compilation), apart from what `render` does
+    # to every leaf of the scene (a cast to the render dtype, `stop_gradient` for the
+    # marching loop): per leaf, not per copy of a child program
+    camera = jr.PerspectiveCamera(eye=(0.0, 4.0, 8.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
+                                  fov=45.0, width=4, height=4)
+
+    def render_size(n):
+        scene = jr.Scene(surface=spheres(n), materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2))] * 2,
+                         lights=[jr.PointLight(position=(3.0, 6.0, 4.0), intensity=(60.0, 60.0, 60.0))])
+        jaxpr = jax.make_jaxpr(lambda s: jr.render(s, camera, jr.RenderSettings()).rgb)(scene).jaxpr
+        return n_equations(jaxpr, skip=("convert_element_type", "stop_gradient"))
+
+    assert render_size(16) == render_size(128)
+
+
+def test_parameter_change_does_not_retrace():
+    traces = []
+
+    @jax.jit
+    def f(union, p):
+        traces.append(1)
+        return union.eval(p)
+
+    union = spheres(16)
+    p = jnp.array([0.0, 0.5, 0.0])
+    d0, _ = f(union, p)
+    radius = union.children_[0].child.radius
+    moved = eqx.tree_at(lambda u: u.children_[0].child.radius, union, jnp.asarray(0.25, radius.dtype))
+    d1, _ = f(moved, p)
+    assert len(traces) == 1
+    np.testing.assert_allclose([d0, d1], [-0.5, -0.25], rtol=1e-14)
+
+
+def many_spheres_scene():
+    rng = np.random.default_rng(5)
+    children = [S.Translate(S.Sphere(radius=0.2 + 0.15 * rng.uniform(), material=0),
+                            offset=(rng.uniform(-1.2, 1.2), 0.4, rng.uniform(-1.0, 0.2)))
+                for i in range(8)]
+    children += [S.Translate(S.Sphere(radius=0.25, material=1), offset=(x, 0.3, 0.6)) for x in (-0.6, 0.6)]
+    surface = S.Union(*children, S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=2))
+    scene = jr.Scene(surface=surface,
+                     materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2)),
+                                jr.bsdf.Lambert(albedo=(0.2, 0.5, 0.8)),
+                                jr.bsdf.Lambert(albedo=(0.6, 0.6, 0.6))],
+                     lights=[jr.PointLight(position=(2.0, 4.0, 3.0), intensity=(30.0, 30.0, 30.0))],
+                     background=(0.1, 0.1, 0.15))
+    camera = jr.PerspectiveCamera(eye=(0.0, 1.8, 3.0), target=(0.0, 0.3, 0.0), up=(0.0, 1.0, 0.0),
+                                  fov=50.0, width=10, height=6)
+    return scene, camera
+
+
+@pytest.mark.parametrize("backend", ["fused", pytest.param("pallas", marks=pytest.mark.slow)])
+def test_stacked_union_renders_the_same_through_lanes(backend, monkeypatch):
+    """8 spheres (stacked, scanned) + 2 spheres and a plane (a loop): the lane backends
+    (which unroll the scan; Pallas in interpret mode on CPUs) give the image of the
+    loop union."""
+    scene, camera = many_spheres_scene()
+    settings = jr.RenderSettings(batch_size=16)
+    got = jr.render(scene, camera, settings.replace(backend=backend))
+    monkeypatch.setattr(stack, "STACK_THRESHOLD", LOOP)
+    want = jr.render(scene, camera, settings)
+    np.testing.assert_array_equal(np.asarray(got.coverage), np.asarray(want.coverage))
+    np.testing.assert_allclose(np.asarray(got.rgb), np.asarray(want.rgb), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(got.depth), np.asarray(want.depth), rtol=1e-5, atol=1e-5)
+    assert len(np.unique(np.asarray(want.albedo).reshape(-1, 3), axis=0)) >= 3  # all materials seen
