@@ -114,52 +114,9 @@ def _pixels(cfg, section):
     return rows
 
 
-def stacked_union(children):
-    """A proposed fix for the compile time of large unions (measured here, not yet in
-    `jaxrt.sdf`): children with the same structure (node types, static fields such as
-    material indices) are stacked into one node whose leaves have a leading axis, and
-    evaluated with `vmap` + a min-reduction, so that the program has one copy of each
-    *kind* of child instead of one per child: its size, and so the compile time, no
-    longer grows with the number of children."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    import jaxrt as jr
-
-    groups = {}
-    for c in children:
-        groups.setdefault(jax.tree_util.tree_structure(c), []).append(c)
-
-    class _Stacked(jr.sdf.base.SDF):
-        stacked: object
-        count: int = eqx.field(static=True)
-        ids: frozenset = eqx.field(static=True)
-
-        def eval(self, p):
-            d, m = jax.vmap(lambda c: c.eval(p))(self.stacked)
-            i = jnp.argmin(d)
-            return d[i], m[i]
-
-        def lipschitz(self):
-            return jnp.max(jax.vmap(lambda c: c.lipschitz())(self.stacked))
-
-        def material_ids(self):
-            return set(self.ids)
-
-    nodes = []
-    for members in groups.values():
-        if len(members) == 1:
-            nodes.append(members[0])
-            continue
-        stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *members)
-        ids = frozenset().union(*[m.material_ids() for m in members])
-        nodes.append(_Stacked(stacked, len(members), ids))
-    return nodes[0] if len(nodes) == 1 else jr.sdf.Union(*nodes)
-
-
-def primitive_scene(n, width, height, stacked=False):
-    """n spheres on a grid over a plane, in one Union (n + 1 children)."""
+def primitive_scene(n, width, height):
+    """n spheres on a grid over a plane, in one Union (n + 1 children): two kinds of
+    sphere (materials 0 and 1, n/2 each) and the plane."""
     import jaxrt as jr
 
     S = jr.sdf
@@ -169,7 +126,7 @@ def primitive_scene(n, width, height, stacked=False):
         x, z = (i % k - (k - 1) / 2) * 1.2, (i // k - (k - 1) / 2) * 1.2
         spheres.append(S.Translate(S.Sphere(radius=0.5, material=i % 2), offset=(x, 0.5, z)))
     children = [*spheres, S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=2)]
-    surface = stacked_union(children) if stacked else S.Union(*children)
+    surface = S.Union(*children)
     scene = jr.Scene(surface=surface,
                      materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2)),
                                 jr.bsdf.Lambert(albedo=(0.2, 0.5, 0.8)),
@@ -182,16 +139,32 @@ def primitive_scene(n, width, height, stacked=False):
     return scene, camera
 
 
+# Union variants: the threshold of `jaxrt.sdf.stack` (groups of at least this many
+# children of one structure are stacked) that each measures.
+UNIONS = {"library": None, "loop": 10**9, "stacked": 2}
+
+
 def _primitives(cfg, section):
+    """Compile and render time against the number of spheres in one `sdf.Union`:
+    "library" (the Union as shipped: groups of ≥ STACK_THRESHOLD children of one kind
+    stacked), "loop" (every child a copy in the program, as before stacking) and
+    "stacked" (every group of ≥ 2 stacked), each up to cfg["max_count"][variant]."""
+    from jaxrt.sdf import stack
+
     rows = []
     st = _settings(section)
-    base_c = None
-    for union in cfg.get("unions", ["python", "stacked"]):
+    default = stack.STACK_THRESHOLD
+    for union in cfg.get("unions", list(UNIONS)):
         for n in cfg["counts"]:
-            if union == "python" and n > cfg.get("max_python_count", n):
+            if n > cfg.get("max_count", {}).get(union, n):
                 continue
-            scene, camera = primitive_scene(n, *cfg["size"], stacked=union == "stacked")
-            tl, tc, t, img = measure(scene, camera, st, section["repeats"])
+            threshold = UNIONS[union]
+            stack.STACK_THRESHOLD = default if threshold is None else threshold
+            try:
+                scene, camera = primitive_scene(n, *cfg["size"])
+                tl, tc, t, img = measure(scene, camera, st, section["repeats"])
+            finally:
+                stack.STACK_THRESHOLD = default
             rows.append(dict(union=union, primitives=n, trace_lower_s=tl, xla_compile_s=tc,
                              compile_s=tl + tc, compile_per_primitive_ms=1e3 * (tl + tc) / n,
                              render_ms=1e3 * t, mean_rgb=float(np.asarray(img.rgb).mean())))

@@ -13,22 +13,26 @@ of length n:
 
 The program holds one copy of f per kind of child (one `stack` equation per leaf
 gathers the children's leaves), so its size does not grow with n. The reduction is a
-`lax.scan` with the loop's select, not `vmap` + argmin: on a CPU the scan renders as
-fast as the loop (measured 15 vs 26 ms for 64 spheres at 32×32, where vmap + argmin
-took 110 ms: it evaluates every child into an [rays, n] array and gathers from it).
-The result and its gradient are those of the loop: a chain of selects, so the
-gradient flows to child j* alone (through the stack, to that child's own leaves), as
-through the loop's `combine._min`. The fused lane backends unroll the scan
-(`jaxrt.kernels.lanes`), so their programs still grow linearly with n.
-"""
+`lax.scan` with the loop's select, not `vmap` + argmin: on a CPU the scan renders
+faster than the loop for many children (64 spheres, 32×32: 16 vs 38 ms,
+experiments/bench/scaling.py), where vmap + argmin was slower than the loop (110 vs
+26 ms in one interleaved run: it evaluates every child into an [rays, n] array and
+gathers from it). The result and its gradient are those of the loop: a chain of
+selects, so the gradient flows to child j* alone (through the stack, to that child's
+own leaves), as through the loop's `combine._min`. Exact ties between children of
+different groups go to the first child in the list; a tie between a stacked child and
+a looped one can still be broken by an ulp of rounding (the two are compiled apart).
+The fused lane backends unroll the scan (`jaxrt.kernels.lanes`), so their programs
+still grow linearly with n."""
 
 import jax
 import jax.numpy as jnp
 
 # Groups with at least this many members are stacked; smaller ones stay a loop.
-# Chosen from experiments/bench/scaling.py (CPU, 32×32): below ~8 children the loop
-# compiles about as fast and renders faster (it fuses into one kernel; the stacked
-# form evaluates all children of a group as one batch).
+# From experiments/bench/scaling.py --only primitives (CPU, 32×32, spheres in two
+# groups): groups of 2 and 4 compile slower stacked than looped (6.1 vs 4.0 s, 7.1 vs
+# 5.2 s) and render slower (6.1 vs 1.8 ms, 3.8 vs 1.9 ms); groups of 8 compile faster
+# stacked (7.3 vs 8.3 s), and from 16 on the loop's compile time runs away.
 STACK_THRESHOLD = 8
 
 
