@@ -2,6 +2,9 @@
 centre (through the silhouette estimator), a GGX sphere's roughness and f0, a glass
 sphere's index of refraction from what it refracts."""
 
+import re
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -124,3 +127,14 @@ def test_fit_a_glass_spheres_index_of_refraction_from_what_it_refracts():
     result = fit.fit(lambda p, _: fit.l2_loss(jr.render(scene(p), camera, settings).rgb, target),
                      start, optx.BFGS(rtol=1e-10, atol=1e-10), max_steps=100)
     assert float(fit.relative_error(result.params, truth)) < 1e-3
+
+
+def test_the_readme_fitting_example_runs_and_recovers_the_sphere(capsys):
+    """README.md, "Fitting shapes and materials to images": the block runs as written
+    (32×32) and recovers the radius and centre to 1e-3 relative."""
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    blocks = [b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "fit.fit(" in b]
+    assert len(blocks) == 1
+    namespace = {}
+    exec(compile(blocks[0], "README.md", "exec"), namespace)
+    assert float(fit.relative_error(namespace["result"].params, namespace["truth"])) < 1e-3
