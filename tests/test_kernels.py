@@ -164,3 +164,35 @@ def test_auto_backend_falls_back_where_lanes_cannot_run():
     with pytest.raises(Unsupported):
         map_samples(fn, jnp.float64(2.0), samples, jr.RenderSettings(backend="fused"), reference)
     assert resolve_backend("auto") == ("pallas" if jax.default_backend() == "gpu" else "fused")
+
+
+def test_store_is_exact_and_a_fusion_boundary_on_cpu():
+    """lanes._materialise (how "fused" materialises shared lanes on XLA:CPU) returns its input
+    bit for bit, and XLA computes a stored expression once: without the store, the
+    shared chain is fused into (so recomputed in) each of 8 consumer outputs."""
+    from jaxrt.kernels.lanes import _materialise as _store
+
+    x = np.array([0.0, -0.0, 1.5, -np.inf, np.inf, np.nan, 1e-45, -3e38], np.float32)
+    got = np.asarray(jax.jit(_store)(x))
+    assert got.tobytes() == x.tobytes()
+    i = np.array([np.iinfo(np.int32).min, -1, 0, 7], np.int32)
+    assert np.array_equal(np.asarray(jax.jit(_store)(i)), i)
+    b = np.array([True, False, True])
+    assert np.array_equal(np.asarray(jax.jit(_store)(b)), b)
+
+    def program(store):
+        def f(v):
+            for k in range(20):  # a chain of cheap ops (XLA duplicates these freely)
+                v = jnp.maximum(v * 1.1 - 0.2, v * 0.7) + 0.01 * k
+            v = store(v)
+            return [v * k + jnp.abs(v - k) for k in range(8)]  # 8 separate outputs
+        return f
+
+    cpu = jax.devices("cpu")[0]
+    v = jax.device_put(jnp.ones((64, 64), jnp.float32), cpu)
+    counts = {}
+    for name, store in (("none", lambda v: v), ("store", _store)):
+        hlo = jax.jit(program(store)).lower(v).compile().as_text()
+        counts[name] = hlo.count(" multiply(")
+    assert counts["store"] <= 40 + 8 + 8, counts  # the chain once (2 per step), 8 outputs
+    assert counts["none"] >= 4 * counts["store"], counts  # what the store prevents

@@ -667,7 +667,7 @@ def _call(eqn, ins, ctx):
     return outs
 
 
-def _store(x):
+def _materialise(x):
     """`x`, computed once into memory: a fusion boundary for XLA on CPUs.
 
     XLA:CPU removes `optimization_barrier`s before fusion (the `cse_barrier_expander`
@@ -682,7 +682,8 @@ def _store(x):
 
 
 def _barrier(objs):
-    """`_store` on the traced lanes of `objs`: XLA then computes them once, instead of fusing (and so duplicating) their whole expression into every
+    """`_materialise` on the traced lanes of `objs`: XLA then computes them once,
+    instead of fusing (and so duplicating) their whole expression into every
     consumer: a program scalarised into lanes has many consumers per value (each
     component of each output), and XLA's CPU fusion would recompute shared work."""
     flat, where = [], []
@@ -694,7 +695,7 @@ def _barrier(objs):
                 where.append((k, idx))
     if not flat:
         return objs
-    flat = [_store(x) for x in flat]
+    flat = [_materialise(x) for x in flat]
     objs = [o.copy() for o in objs]
     for (k, idx), x in zip(where, flat):
         objs[k][idx] = x
