@@ -83,7 +83,7 @@ def _soft_shadow(sdf, origin, wi, t_max, settings):
     dtype = origin.dtype
     k = jnp.asarray(settings.penumbra, dtype)
     eps = settings.hit_epsilon
-    lipschitz = sdf.lipschitz().astype(dtype)
+    inv_lipschitz = 1.0 / sdf.lipschitz().astype(dtype)  # a product per step
     # Inside a solid the distance to its surface is −f.
     sign = jnp.where(sdf(origin) < 0.0, -1.0, 1.0).astype(dtype)
     # Steps are clamped to [eps, max_step]: a floor so that grazing rays progress and a
@@ -96,7 +96,7 @@ def _soft_shadow(sdf, origin, wi, t_max, settings):
 
     def body(s):
         t, vis, i = s
-        d = sign * sdf(origin + t * wi) / lipschitz
+        d = sign * sdf(origin + t * wi) * inv_lipschitz
         h = jnp.clip(safe_div(k * d, t, 1.0), 0.0, 1.0)
         vis = jnp.minimum(vis, h * h * (3.0 - 2.0 * h))
         vis = jnp.where(d < eps, 0.0, vis)

@@ -189,6 +189,8 @@ def _march(sdf, origin, direction, settings, cone, t_max):
     """The bounded sphere-tracing loop (no gradient). Returns a dict of `Hit` fields."""
     dtype = origin.dtype
     lipschitz = sdf.lipschitz().astype(dtype)
+    inv_lipschitz = 1.0 / lipschitz  # once per ray: a product per step, not a division
+    relax = settings.over_relaxation != 1.0  # static: plain sphere tracing needs no fall-back
     omega0 = jnp.asarray(settings.over_relaxation, dtype)
     start = sdf(origin)
     sign = jnp.where(start < 0.0, -1.0, 1.0).astype(dtype)
@@ -196,56 +198,70 @@ def _march(sdf, origin, direction, settings, cone, t_max):
     zero = jnp.zeros((), dtype)
 
     def radius_at(t):
-        return sign * sdf(origin + t * direction) / lipschitz
+        return sign * sdf(origin + t * direction) * inv_lipschitz
 
     def ratio_at(t, r):
         # f / r(t): distance in pixel-cone radii (big where the cone has no width).
         return safe_div(r, cone[0] + cone[1] * t, big)
 
-    r0 = sign * start / lipschitz
+    r0 = sign * start * inv_lipschitz
     # t, r: the current sample (r = |f|/L there); t_prev, r_prev: the previous accepted
     # sample (over-relaxation); last_*: the previous accepted sample for the near-miss
     # search, last_lo the sample before it; best_*: the nearest near miss so far.
-    init = dict(t=zero, r=r0, t_prev=zero, r_prev=r0, omega=omega0,
-                steps=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool),
+    init = dict(t=zero, r=r0, steps=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool),
                 hit=jnp.zeros((), bool), last=big, last_t=zero, last_r=r0, last_lo=zero,
                 best=big, best_t=zero, best_r=r0, best_lo=zero, best_hi=zero)
+    if relax:
+        init.update(t_prev=zero, r_prev=r0, omega=omega0)
 
     def cond(s):
         return (~s["done"]) & (s["steps"] < settings.max_steps)
 
     def body(s):
-        t, r, t_prev, r_prev, omega = s["t"], s["r"], s["t_prev"], s["r_prev"], s["omega"]
+        t, r = s["t"], s["r"]
         eps = hit_epsilon(settings, t, cone)
-        # Over-relaxation fall-back (Keinert et al. 2014): if the unbounding spheres of
-        # the previous and current samples do not overlap, the long step may have
-        # skipped a surface: return to the safe step from the previous sample.
-        fail = (omega > 1.0) & (r + r_prev < t - t_prev) & (s["steps"] > 0)
-        is_hit = (~fail) & (r < eps)
+        new = dict(s)
+        if relax:
+            # Over-relaxation fall-back (Keinert et al. 2014): if the unbounding spheres
+            # of the previous and current samples do not overlap, the long step may have
+            # skipped a surface: return to the safe step from the previous sample.
+            t_prev, r_prev, omega = s["t_prev"], s["r_prev"], s["omega"]
+            fail = (omega > 1.0) & (r + r_prev < t - t_prev) & (s["steps"] > 0)
+
+            def unless_fail(a, b):
+                return jnp.where(fail, a, b)
+
+            def accepted(x):
+                return (~fail) & x
+        else:  # ω = 1: no step can fail; the selects below vanish at trace time
+            def unless_fail(a, b):
+                return b
+
+            def accepted(x):
+                return x
+        is_hit = accepted(r < eps)
         # Near misses: when f/r grows again, the previous sample was a local minimum.
         ratio = ratio_at(t, r)
-        rising = (~fail) & (ratio > s["last"])
+        rising = accepted(ratio > s["last"])
         better = rising & (s["last"] < s["best"])
-        new = dict(s)
         new["best"] = jnp.where(better, s["last"], s["best"])
         new["best_t"] = jnp.where(better, s["last_t"], s["best_t"])
         new["best_r"] = jnp.where(better, s["last_r"], s["best_r"])
         new["best_lo"] = jnp.where(better, s["last_lo"], s["best_lo"])
         new["best_hi"] = jnp.where(better, t, s["best_hi"])
-        new["last"] = jnp.where(fail, s["last"], ratio)
-        new["last_t"] = jnp.where(fail, s["last_t"], t)
-        new["last_r"] = jnp.where(fail, s["last_r"], r)
-        new["last_lo"] = jnp.where(fail, s["last_lo"], s["last_t"])
-        t_next = jnp.where(fail, t_prev + r_prev, t + omega * r)
-        r_next_prev = jnp.where(fail, r_prev, r)
-        t_next_prev = jnp.where(fail, t_prev, t)
-        new["omega"] = jnp.where(fail, 1.0, omega).astype(dtype)
+        new["last"] = unless_fail(s["last"], ratio)
+        new["last_t"] = unless_fail(s["last_t"], t)
+        new["last_r"] = unless_fail(s["last_r"], r)
+        new["last_lo"] = unless_fail(s["last_lo"], s["last_t"])
+        t_next = unless_fail(t_prev + r_prev, t + omega * r) if relax else t + r
         escaped = (~is_hit) & (t_next > t_max)
         done = is_hit | escaped
         new["t"] = jnp.where(done, t, t_next)
         new["r"] = jnp.where(done, r, radius_at(jnp.minimum(new["t"], t_max)))
-        new["t_prev"] = jnp.where(done, t_prev, t_next_prev)
-        new["r_prev"] = jnp.where(done, r_prev, r_next_prev)
+        if relax:
+            new["omega"] = unless_fail(1.0, omega).astype(dtype)
+            new["t_prev"] = jnp.where(done, t_prev, unless_fail(t_prev, t))
+            new["r_prev"] = jnp.where(done, r_prev, unless_fail(r_prev, r))
         new["steps"] = s["steps"] + 1
         new["done"] = done
         new["hit"] = is_hit

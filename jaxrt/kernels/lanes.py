@@ -122,6 +122,14 @@ def _const_lane(c, dtype, ctx):
     # within a scope each constant is one lane, not one multiply-add per use.
     key = (dtype.str, np.asarray(c, dtype).tobytes())
     cache = ctx.scopes[-1]
+    if key not in cache and ctx.int_anchor is not None:
+        # From a traced integer scalar (a program id): i·0 folds to 0 at compile time,
+        # so the lane is a splat of the constant (x·0 of a float lane does not fold).
+        zero = lax.convert_element_type(ctx.int_anchor * 0,
+                                        np.int32 if dtype == np.dtype(bool) else dtype)
+        value = (zero + np.int32(bool(c))) != 0 if dtype == np.dtype(bool) else \
+            zero + np.asarray(c, dtype)[()]
+        cache[key] = jnp.broadcast_to(value, ctx.block)
     if key not in cache:
         zero = lax.convert_element_type(ctx.anchor * 0,
                                         np.int32 if dtype == np.dtype(bool) else dtype)
@@ -138,6 +146,7 @@ class _Ctx:
     def __init__(self, block, any_lane, unroll, materialize=False, fast_math=False):
         self.fast_math = fast_math
         self.anchor = None
+        self.int_anchor = None
         self.scopes = [{}]
         self.unsupported = frozenset()
         self.block = block
@@ -994,7 +1003,7 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
 
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
-               fast_math=False, unsupported=()):
+               fast_math=False, unsupported=(), int_anchor=None):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -1010,11 +1019,14 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
       fast_math: float32 sqrt and division by shared values in cheaper forms, within a
         few ulps (`_fast_math`; for GPU kernels).
       unsupported: primitive names the target cannot compile (raise `Unsupported`).
+      int_anchor: a traced integer scalar (a Pallas program id) from which constant
+        lanes are built (`_const_lane`), so that they fold to splats.
 
     Returns: one object array of lanes per output of the program.
     """
     ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize, fast_math)
     ctx.unsupported = frozenset(unsupported)
+    ctx.int_anchor = int_anchor
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \

@@ -35,15 +35,19 @@ def _box_like(q, size):
     rounding (`safe_norm` below its threshold gives 0, ties of max(q, 0) and min(·, 0)
     at 0 give 2/3 of the normal); the band puts them on one side of the switch.
 
-    max q is taken as q[argmax q], whose gradient is the nearest face's normal: the
-    gradient of `jnp.max` selects the components equal to the maximum, and where XLA
-    computes q twice with different roundings (it does, in some gradient programs)
-    none is equal and the normal comes out as 0.
+    max q is taken by a chain of selects (the first of equal components, as argmax),
+    whose gradient is the nearest face's normal: the gradient of `jnp.max` selects the
+    components equal to the maximum, and where XLA computes q twice with different
+    roundings (it does, in some gradient programs) none is equal and the normal comes
+    out as 0. (Selects, not q[argmax q]: in the fused lane kernels an index costs a
+    chain of integer compares.)
     """
     band = 64.0 * jnp.finfo(q.dtype).eps * (1.0 + size)
     outside = jnp.maximum(q, 0.0)
     far = jnp.max(outside) > band
-    nearest = q[jnp.argmax(q)]
+    nearest = q[0]
+    for i in range(1, q.shape[0]):
+        nearest = jnp.where(q[i] > nearest, q[i], nearest)
     return jnp.where(far, safe_norm(outside), nearest)
 
 
