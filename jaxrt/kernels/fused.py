@@ -49,10 +49,6 @@ UNROLL = 1
 #: once the stores were reductions (XLA removed the optimization barriers used before).
 MATERIALIZE = True
 
-#: "fused" on XLA: independent tiles traced per step of the loop over tiles; XLA's
-#: CPU runtime may run their march loops concurrently (on its intra-op threads).
-TILES_PER_STEP = 1
-
 #: Pallas kernels use `lanes._fast_math` (sqrt via rsqrt; division by shared values as a
 #: multiplication): images agree with the exact forms to a few ulps. Off: on an H100 the
 #: Warp scene rendered in 0.54 ms with it and 0.51 ms without (same run), so arithmetic
@@ -199,17 +195,10 @@ def _tiles(one, dyn, samples, settings, grid):
                           materialize=MATERIALIZE)
         return [stack_lanes(o, tile, sh.dtype) for o, sh in zip(outs, out_leaves)]
 
-    k = max(1, min(int(TILES_PER_STEP), ty * tx))
     if ty * tx == 1:
         res = [r[None] for r in run_tile(s[0])]
-    elif k == 1:
+    else:
         res = lax.map(run_tile, s)
-    else:  # k independent tiles per step: XLA may run their loops on k threads
-        groups = -(-(ty * tx) // k)
-        s = jnp.concatenate([s, jnp.repeat(s[-1:], groups * k - ty * tx, axis=0)])
-        s = s.reshape((groups, k) + s.shape[1:])
-        res = lax.map(lambda sg: [jnp.stack(r) for r in zip(*[run_tile(sg[i]) for i in range(k)])], s)
-        res = [r.reshape((groups * k,) + r.shape[2:])[:ty * tx] for r in res]
     res = [_from_tiles(r.reshape((ty, tx) + r.shape[1:]), grid) for r in res]
     return jax.tree_util.tree_unflatten(out_tree, res)
 
