@@ -8,6 +8,11 @@ A scene file has the tables
                   "cook_torrance", ...) and its arguments; NAME is how shapes refer to
                   it (`material = "NAME"`), in the order of the file
     [[lights]]    type = "point" | "directional", and the light's arguments
+    [[heightfields]]  height fields y = h(x, z) (optional): `height` is a table with
+                  type = "plane" | "sine" | "grid" and its arguments (a grid's
+                  `heights` is an array of rows, or the path of a .npy file relative
+                  to the scene file), `material` a material name, and the other
+                  `jaxrt.heightfield.HeightField` arguments (max_steps, min_step, ...)
     [surface]     a shape tree: `type` is a `jaxrt.sdf` node in snake_case ("sphere",
                   "smooth_union", "translate", ...); combinations take `children`
                   (union, intersection) or `a` and `b`; placements and deformations
@@ -27,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from . import bsdf, sdf
+from .heightfield import GridHeight, HeightField, PlaneHeight, SineHeight
 from .bsdf.base import Material
 from .camera import OrthographicCamera, PerspectiveCamera
 from .lights import DirectionalLight, PointLight
@@ -55,6 +61,7 @@ MATERIALS = {
     if isinstance(cls, type) and issubclass(cls, Material) and not inspect.isabstract(cls)
 }
 LIGHTS = {"point": PointLight, "directional": DirectionalLight}
+HEIGHTS = {"plane": PlaneHeight, "sine": SineHeight, "grid": GridHeight}
 CAMERAS = {"perspective": PerspectiveCamera, "orthographic": OrthographicCamera}
 #: Parts given as nested tables with a `type` (`distribution = {type = "ggx", alpha = 0.2}`).
 PARTS = {"sine_displacement": sdf.SineDisplacement} | {
@@ -79,7 +86,7 @@ RANGES = {
 }
 
 SDF_OR_INDEX = (sdf.SDF,)
-_TOP_KEYS = {"camera", "settings", "materials", "lights", "surface", "background"}
+_TOP_KEYS = {"camera", "settings", "materials", "lights", "surface", "background", "heightfields"}
 
 
 def load(path, *, width=None, height=None, spp=None):
@@ -97,7 +104,7 @@ def load(path, *, width=None, height=None, spp=None):
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: malformed TOML: {e}") from None
-    return _Loader(str(path)).load(doc, width=width, height=height, spp=spp)
+    return _Loader(str(path), path.parent).load(doc, width=width, height=height, spp=spp)
 
 
 def loads(text, name="<string>", **overrides):
@@ -106,12 +113,13 @@ def loads(text, name="<string>", **overrides):
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{name}: malformed TOML: {e}") from None
-    return _Loader(name).load(doc, **overrides)
+    return _Loader(name, Path.cwd()).load(doc, **overrides)
 
 
 class _Loader:
-    def __init__(self, name):
+    def __init__(self, name, folder):
         self.name = name
+        self.folder = folder  # where relative paths in the file start
 
     def fail(self, key, value, expected):
         shown = _show(value)
@@ -130,12 +138,15 @@ class _Loader:
         materials, names = self.materials(doc.get("materials"))
         surface = self.shape(self.table(doc, "surface"), "surface", names)
         lights = [self.light(l, f"lights[{i}]") for i, l in enumerate(self.list(doc, "lights"))]
+        fields = [self.heightfield(h, f"heightfields[{i}]", names)
+                  for i, h in enumerate(self.list(doc, "heightfields"))]
         camera = self.camera(self.table(doc, "camera"), width, height)
         background = (0.0, 0.0, 0.0)
         if "background" in doc:
             background = self.value("background", doc["background"], (0.0, 0.0, 0.0), "background")
         try:
-            scene = Scene(surface=surface, materials=materials, lights=lights, background=background)
+            scene = Scene(surface=surface, materials=materials, lights=lights, background=background,
+                          heightfields=fields)
         except (TypeError, ValueError) as e:
             raise ConfigError(f"{self.name}: {e}") from None
         return scene, camera, settings
@@ -150,7 +161,7 @@ class _Loader:
     def list(self, doc, key):
         value = doc.get(key, [])
         if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
-            self.fail(key, value, "an array of tables ([[lights]])")
+            self.fail(key, value, f"an array of tables ([[{key}]])")
         return value
 
     # -- parts --------------------------------------------------------------------
@@ -225,6 +236,34 @@ class _Loader:
             self.check_args(cls, args, key, varargs=True)
             return self.construct(lambda: cls(*children), key)
         return self.construct_checked(cls, args, key)
+
+    def heightfield(self, spec, key, names):
+        if not isinstance(spec, dict):
+            self.fail(key, spec, "a height-field table with a `height` table")
+        args = dict(spec)
+        if "height" not in args:
+            self.fail_missing(f"{key}.height", f"a table with a type, one of {sorted(HEIGHTS)}")
+        height = dict(args.pop("height")) if isinstance(args["height"], dict) else args.pop("height")
+        if isinstance(height, dict) and isinstance(height.get("heights"), str):
+            height["heights"] = self.array_file(height["heights"], f"{key}.height.heights")
+        height = self.build(height, f"{key}.height", HEIGHTS, "height")
+        if "material" in args:
+            args["material"] = self.material_ref(args["material"], f"{key}.material", names)
+        self.check_args(HeightField, args, key)
+        for arg, value in args.items():
+            if arg != "material":
+                args[arg] = self.value(f"{key}.{arg}", value, _parameters(HeightField)[arg].default, arg)
+        return self.construct(lambda: HeightField(height, **args), key)
+
+    def array_file(self, name, key):
+        """A .npy file named relative to the scene file."""
+        path = self.folder / name
+        if path.suffix != ".npy":
+            self.fail(key, name, "an array of rows or the path of a .npy file")
+        try:
+            return np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            self.fail(key, name, f"a readable .npy file ({e})")
 
     def material_ref(self, value, key, names):
         if isinstance(value, str):

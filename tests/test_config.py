@@ -137,3 +137,46 @@ def test_missing_tables_and_empty_unions():
 def test_unreadable_file(tmp_path):
     with pytest.raises(ConfigError, match="cannot read the file"):
         load(tmp_path / "missing.toml")
+
+
+HEIGHTFIELDS = """
+[[heightfields]]
+material = "red"
+max_steps = 256
+height = { type = "sine", amplitude = 0.2, frequency = [1.0, 0.5] }
+
+[[heightfields]]
+height = { type = "grid", heights = "terrain.npy", extent = [-2.0, 2.0, -1.0, 1.0] }
+"""
+
+
+def test_heightfields_build_the_surfaces_they_describe(tmp_path):
+    heights = np.array([[0.0, 0.1, 0.2], [0.3, 0.4, 0.5]])
+    np.save(tmp_path / "terrain.npy", heights)
+    path = tmp_path / "scene.toml"
+    path.write_text(GOOD + HEIGHTFIELDS)
+    scene, camera, settings = load(path)
+    sine, grid = scene.heightfields
+    assert isinstance(sine.height, jr.heightfield.SineHeight) and sine.material == 0
+    assert sine.max_steps == 256 and float(sine.height.amplitude) == pytest.approx(0.2)
+    np.testing.assert_allclose(sine.height.frequency, [1.0, 0.5])
+    np.testing.assert_allclose(grid.height.heights, heights)  # relative to the scene file
+    np.testing.assert_allclose(grid.height.extent, [-2.0, 2.0, -1.0, 1.0])
+    assert grid.material == 0 and grid.max_steps == 512  # HeightField's defaults
+
+
+@pytest.mark.parametrize("old, new, expected", [
+    ('type = "sine", amplitude = 0.2,', 'type = "sine",', "bad.toml: heightfields[0].height.amplitude is missing"),
+    ('type = "sine"', 'type = "cubic"', "bad.toml: heightfields[0].height.type = 'cubic', expected a height type"),
+    ('heights = "terrain.npy"', 'heights = "terrain.txt"', "bad.toml: heightfields[1].height.heights = 'terrain.txt', expected"),
+    ('heights = "terrain.npy"', 'heights = "absent.npy"', "bad.toml: heightfields[1].height.heights = 'absent.npy', expected a readable .npy file"),
+    ('heights = "terrain.npy"', "heights = [[1.0, 2.0]]", "bad.toml: heightfields[1].height: `GridHeight(heights=...)` must have shape"),
+    ('material = "red"', 'material = "clay"', "bad.toml: heightfields[0].material = 'clay', expected the name of a [materials.NAME] table"),
+    ("max_steps = 256", "max_steps = 0", "bad.toml: heightfields[0]: `HeightField(max_steps=0)`: expected an integer ≥ 1"),
+    ("max_steps = 256", "steps = 256", "bad.toml: heightfields[0].steps = 256, expected one of the arguments"),
+    ("max_steps = 256\nheight =", "max_steps = 256\nheigth =", "bad.toml: heightfields[0].height is missing"),
+])
+def test_bad_heightfields_name_file_key_and_expectation(old, new, expected):
+    assert old in HEIGHTFIELDS
+    message = _error(GOOD + HEIGHTFIELDS.replace(old, new, 1))
+    assert message.startswith(expected), message
