@@ -100,15 +100,18 @@ def main(argv=None):
     for name in names:
         overrides = dict(cfg["variants"][name])
         knobs = overrides.pop("kernel", {})
+        xla = overrides.pop("xla", None)  # XLA compiler options of this variant
         settings = base.replace(**overrides)
         _set_kernel_knobs(knobs)
         jax.clear_caches()
         t0 = time.perf_counter()
         f = jax.jit(lambda d, settings=settings: _render.__wrapped__(*eqx.combine(d, static), settings))
-        f = f.lower(dyn).compile()
+        f = f.lower(dyn).compile(compiler_options=xla)
         compile_s = time.perf_counter() - t0
         img = f(dyn)
         img.rgb.block_until_ready()
+        if xla:
+            knobs = dict(knobs, xla=xla)
         compiled[name] = (f, overrides, knobs, compile_s, img)
         print(f"compiled {name} in {compile_s:.1f} s", flush=True)
     # interleaved timing: every variant once per round, so that a machine whose load

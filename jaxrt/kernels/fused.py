@@ -158,9 +158,9 @@ def _from_tiles(x, grid):
 
 
 def resolve_backend(backend):
-    """"auto" → "pallas" on a GPU, "fused" elsewhere; others unchanged. (On an idle
-    2-core CPU the fused lanes rendered the Warp scene 1.9× faster than vmap; on a CPU
-    shared with other jobs they were at times slower.)"""
+    """"auto" → "pallas" on a GPU, "fused" elsewhere; others unchanged. (On 2 CPU
+    cores the fused lanes rendered the Warp scene 1.4–2× faster than vmap; they were
+    slower while XLA:CPU recomputed shared lanes, see `lanes._materialise`.)"""
     if backend == "auto":
         return "pallas" if jax.default_backend() == "gpu" else "fused"
     return backend
