@@ -19,7 +19,7 @@ experiments/bench/scaling.py), where vmap + argmin was slower than the loop (110
 26 ms in one interleaved run: it evaluates every child into an [rays, n] array and
 gathers from it). The result and its gradient are those of the loop: a chain of
 selects, so the gradient flows to child j* alone (through the stack, to that child's
-own leaves), as through the loop's `combine._min`. Exact ties between children of
+own leaves), as through the loop's select-based min. Exact ties between children of
 different groups go to the first child in the list; a tie between a stacked child and
 a looped one can still be broken by an ulp of rounding (the two are compiled apart).
 The fused lane backends unroll the scan (`jaxrt.kernels.lanes`), so their programs
