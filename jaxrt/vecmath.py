@@ -1,11 +1,18 @@
 """NaN-safe vector helpers.
 
-Every partial function here uses the double-`where` pattern: the argument is replaced
-by a harmless value where the function is undefined *before* the function is applied,
-so that neither the value nor the gradient is NaN or infinite there
-(`safe = where(ok, x, 1); y = where(ok, f(safe), fallback)`).
+Every partial function here is guarded so that neither the value nor the gradient is
+NaN or infinite where the function is undefined: the double-`where` pattern (the
+argument is replaced by a harmless value *before* the function is applied,
+`safe = where(ok, x, 1); y = where(ok, f(safe), fallback)`), or, for square roots, a
+custom JVP that puts the guard in the derivative only: the forward program is a bare
+`sqrt(max(x, 0))` (a min/max and a square root, no selects: the fused kernels of
+`jaxrt.kernels` run forward programs only) and the derivative is the double-`where`
+one.
 """
 
+from functools import partial
+
+import jax
 import jax.numpy as jnp
 
 #: Squared lengths below this are treated as zero by `normalize` and `safe_norm`.
@@ -19,27 +26,68 @@ def dot(a, b):
     return jnp.sum(a * b, axis=-1)
 
 
+@partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _guarded_sqrt(x, tiny):
+    """sqrt(max(x, 0)); its derivative 1/(2 sqrt x) where x > tiny, else 0."""
+    return jnp.sqrt(jnp.maximum(x, 0.0))
+
+
+@_guarded_sqrt.defjvp
+def _guarded_sqrt_jvp(tiny, primals, tangents):
+    (x,), (tx,) = primals, tangents
+    y = _guarded_sqrt(x, tiny)
+    ok = x > tiny
+    return y, jnp.where(ok, 0.5 * tx / jnp.where(ok, y, 1.0), 0.0)
+
+
 def safe_sqrt(x):
     """`sqrt(max(x, 0))` with a finite gradient at and below 0 (the gradient there is 0)."""
-    ok = x > 0.0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+    return _guarded_sqrt(x, 0.0)
 
 
 def safe_norm(x, axis=-1):
-    """Euclidean norm with a zero (not NaN) gradient at the zero vector."""
-    sq = jnp.sum(x * x, axis=axis)
-    ok = sq > TINY
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    """Euclidean norm with a zero (not NaN) gradient at the zero vector (|x|² ≤ TINY)."""
+    return _guarded_sqrt(jnp.sum(x * x, axis=axis), TINY)
 
 
 def normalize(x, fallback=None):
-    """`x / |x|`; the zero vector maps to `fallback` (default +z) with a zero gradient."""
+    """`x / |x|`; the zero vector (|x|² ≤ TINY) maps to `fallback` (default +z) with a
+    zero gradient. (1/sqrt(max(|x|², TINY)) is finite everywhere, so one select, for
+    the fallback, guards value and gradient.)"""
     sq = jnp.sum(x * x, axis=-1, keepdims=True)
-    ok = sq > TINY
-    inv = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    inv = 1.0 / jnp.sqrt(jnp.maximum(sq, TINY))
     if fallback is None:
         fallback = jnp.zeros_like(x).at[..., 2].set(1.0)
-    return jnp.where(ok, x * inv, fallback)
+    return jnp.where(sq > TINY, x * inv, fallback)
+
+
+@jax.custom_jvp
+def minimum(a, b):
+    """min(a, b) whose derivative follows the comparison: the tangent of b where b < a,
+    else of a (the first operand on ties). (jnp.minimum's derivative tests
+    a == min(a, b); where XLA computes `a` twice with different rounding, e.g. in the
+    fused lane programs of jaxrt.kernels, that test fails for both operands and the
+    gradient — a normal — is zero.) The value is a plain minimum (one instruction in
+    the forward-only fused kernels, where a select needs a compare and a select)."""
+    return jnp.minimum(a, b)
+
+
+@minimum.defjvp
+def _minimum_jvp(primals, tangents):
+    (a, b), (ta, tb) = primals, tangents
+    return minimum(a, b), jnp.where(b < a, tb, ta)
+
+
+@jax.custom_jvp
+def maximum(a, b):
+    """max(a, b) whose derivative follows the comparison (see `minimum`)."""
+    return jnp.maximum(a, b)
+
+
+@maximum.defjvp
+def _maximum_jvp(primals, tangents):
+    (a, b), (ta, tb) = primals, tangents
+    return maximum(a, b), jnp.where(b > a, tb, ta)
 
 
 def safe_div(a, b, fallback=0.0):

@@ -13,22 +13,9 @@ smaller one for a union, the larger one for an intersection).
 
 import jax.numpy as jnp
 
-from ..vecmath import safe_div
+from ..vecmath import maximum as _max, minimum as _min, safe_div
 from .base import SDF, check_sdf, non_negative
 from .stack import union_eval, union_lipschitz
-
-
-def _min(a, b):
-    """min(a, b) as a select: its gradient follows the comparison. (jnp.minimum's
-    gradient tests a == min(a, b); where XLA computes `a` twice with different rounding,
-    e.g. in the fused lane programs of jaxrt.kernels, that test fails for both operands
-    and the gradient — a normal — is zero.)"""
-    return jnp.where(b < a, b, a)
-
-
-def _max(a, b):
-    """max(a, b) as a select (see `_min`)."""
-    return jnp.where(b > a, b, a)
 
 
 def op_union(d1, d2):

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..vecmath import dot, safe_div, safe_norm, safe_sqrt
+from ..vecmath import dot, maximum, safe_div, safe_norm, safe_sqrt
 from .base import Primitive, as_float, check, material_index, non_negative, positive
 
 
@@ -35,19 +35,19 @@ def _box_like(q, size):
     rounding (`safe_norm` below its threshold gives 0, ties of max(q, 0) and min(·, 0)
     at 0 give 2/3 of the normal); the band puts them on one side of the switch.
 
-    max q is taken by a chain of selects (the first of equal components, as argmax),
-    whose gradient is the nearest face's normal: the gradient of `jnp.max` selects the
-    components equal to the maximum, and where XLA computes q twice with different
-    roundings (it does, in some gradient programs) none is equal and the normal comes
-    out as 0. (Selects, not q[argmax q]: in the fused lane kernels an index costs a
-    chain of integer compares.)
+    max q is taken by `vecmath.maximum`, whose gradient follows the comparison (the
+    first of equal components, as argmax): the nearest face's normal. (The gradient of
+    `jnp.max` selects the components equal to the maximum, and where XLA computes q
+    twice with different roundings — it does, in some gradient programs — none is
+    equal and the normal comes out as 0; q[argmax q] costs a chain of integer
+    compares in the fused lane kernels.)
     """
     band = 64.0 * jnp.finfo(q.dtype).eps * (1.0 + size)
     outside = jnp.maximum(q, 0.0)
     far = jnp.max(outside) > band
     nearest = q[0]
     for i in range(1, q.shape[0]):
-        nearest = jnp.where(q[i] > nearest, q[i], nearest)
+        nearest = maximum(nearest, q[i])
     return jnp.where(far, safe_norm(outside), nearest)
 
 
