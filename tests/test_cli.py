@@ -33,6 +33,7 @@ def test_render_writes_exr_and_png(tmp_path, capsys):
     assert main(["render", str(config), "-o", str(out), "--width", "10", "--height", "6", "--spp", "2"]) == 0
     printed = capsys.readouterr().out
     assert "10×6" in printed and "compile" in printed and "render" in printed
+    assert "backend auto" in printed  # the file names none
     image = io.read_exr(out.with_suffix(".exr"))
     assert image["rgb"].shape == (6, 10, 3) and image["depth"].shape == (6, 10)
     assert np.all(np.isfinite(image["rgb"]))
@@ -55,3 +56,15 @@ def test_missing_config_exits_nonzero(tmp_path, capsys):
     assert main(["render", str(tmp_path / "nope.toml"), "-o", str(tmp_path / "x")]) == 2
     assert "cannot read the file" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_backend_from_the_flag_else_the_file(tmp_path, capsys):
+    """--backend wins; else the file's settings.backend; the images agree."""
+    config = tmp_path / "ball.toml"
+    config.write_text(SCENE.replace("[materials.white]", '[settings]\nbackend = "jax"\n\n[materials.white]'))
+    assert main(["render", str(config), "-o", str(tmp_path / "a")]) == 0
+    assert "backend jax" in capsys.readouterr().out
+    assert main(["render", str(config), "-o", str(tmp_path / "b"), "--backend", "fused"]) == 0
+    assert "backend fused" in capsys.readouterr().out
+    a, b = io.read_exr(tmp_path / "a.exr")["rgb"], io.read_exr(tmp_path / "b.exr")["rgb"]
+    np.testing.assert_allclose(a, b, atol=1e-5)
