@@ -187,25 +187,30 @@ def test_deformation_blend_and_repetition_gradients_match_finite_differences(def
 # -- depth 2: through mirrors and glass ----------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def whitted_problem():
+def _two_spheres_between_walls(materials):
+    """Two spheres (materials 0 and 1) between a wall behind them (2) and one behind the
+    camera (3), two point lights, at depth 2. Surfaces facing the camera within 30°:
+    reflected rays then all reach the wall behind the camera and refracted ones the wall
+    behind the spheres (no outline in the secondary images either)."""
     surface = sdf.Union(
         sdf.Translate(sdf.Sphere(0.8, material=0), offset=(-0.95, 0.0, 0.0)),
         sdf.Translate(sdf.Sphere(0.8, material=1), offset=(0.95, 0.0, 0.0)),
         sdf.Plane(normal=(0.0, 0.0, -1.0), offset=-3.0, material=2),   # wall behind, z = 3
         sdf.Plane(normal=(0.05, 0.0, 1.0), offset=-8.0, material=3),   # wall behind the camera
     )
-    materials = [Mirror((0.9, 0.8, 0.7)), Dielectric(1.5, absorption=(0.1, 0.2, 0.3)),
-                 Lambert((0.6, 0.5, 0.4)), Lambert((0.3, 0.5, 0.6))]
     lights = [jr.PointLight((0.3, 2.5, -1.0), (30.0, 30.0, 30.0)),
               jr.PointLight((0.0, 1.0, 2.0), (10.0, 12.0, 14.0))]
     scene = jr.Scene(surface, materials, lights, background=0.0)
     camera = jr.PerspectiveCamera(eye=(0.0, 0.2, -3.2), target=(0.0, 0.0, 0.0), fov=40.0,
                                   width=32, height=20)
-    # Surfaces facing the camera within 30°: reflected rays then all reach the wall
-    # behind the camera and refracted ones the wall behind the spheres (no outline in
-    # the secondary images either).
     return Problem(scene, camera, FD.replace(max_depth=2), facing=np.cos(np.radians(30.0)))
+
+
+@pytest.fixture(scope="module")
+def whitted_problem():
+    return _two_spheres_between_walls(
+        [Mirror((0.9, 0.8, 0.7)), Dielectric(1.5, absorption=(0.1, 0.2, 0.3)),
+         Lambert((0.6, 0.5, 0.4)), Lambert((0.3, 0.5, 0.6))])
 
 
 def test_gradients_through_reflection_and_refraction_at_depth_2(whitted_problem):
@@ -220,22 +225,11 @@ def test_gradients_through_reflection_and_refraction_at_depth_2(whitted_problem)
 def specular_materials_problem():
     """The notes' Whitted material (a Phong base lit directly, constant c_refl/c_trans, η)
     and a smooth conductor (complex index η + iκ), between two walls, at depth 2."""
-    surface = sdf.Union(
-        sdf.Translate(sdf.Sphere(0.8, material=0), offset=(-0.95, 0.0, 0.0)),
-        sdf.Translate(sdf.Sphere(0.8, material=1), offset=(0.95, 0.0, 0.0)),
-        sdf.Plane(normal=(0.0, 0.0, -1.0), offset=-3.0, material=2),
-        sdf.Plane(normal=(0.05, 0.0, 1.0), offset=-8.0, material=3),
-    )
-    materials = [Whitted(Phong(kd=(0.2, 0.3, 0.25), ks=0.4, q=6.0, normalized=True),
-                         c_refl=(0.3, 0.25, 0.2), c_trans=(0.5, 0.55, 0.6), eta=1.4),
-                 Conductor(eta=(0.2, 0.4, 1.3), k=(3.6, 2.5, 1.9)),
-                 Lambert((0.6, 0.5, 0.4)), Lambert((0.3, 0.5, 0.6))]
-    lights = [jr.PointLight((0.3, 2.5, -1.0), (30.0, 30.0, 30.0)),
-              jr.PointLight((0.0, 1.0, 2.0), (10.0, 12.0, 14.0))]
-    scene = jr.Scene(surface, materials, lights, background=0.0)
-    camera = jr.PerspectiveCamera(eye=(0.0, 0.2, -3.2), target=(0.0, 0.0, 0.0), fov=40.0,
-                                  width=32, height=20)
-    return Problem(scene, camera, FD.replace(max_depth=2), facing=np.cos(np.radians(30.0)))
+    return _two_spheres_between_walls(
+        [Whitted(Phong(kd=(0.2, 0.3, 0.25), ks=0.4, q=6.0, normalized=True),
+                 c_refl=(0.3, 0.25, 0.2), c_trans=(0.5, 0.55, 0.6), eta=1.4),
+         Conductor(eta=(0.2, 0.4, 1.3), k=(3.6, 2.5, 1.9)),
+         Lambert((0.6, 0.5, 0.4)), Lambert((0.3, 0.5, 0.6))])
 
 
 @pytest.mark.slow
