@@ -249,10 +249,10 @@ class _Loader:
         height = self.build(height, f"{key}.height", HEIGHTS, "height")
         if "material" in args:
             args["material"] = self.material_ref(args["material"], f"{key}.material", names)
-        self.check_args(HeightField, args, key)
+        params = self.check_args(HeightField, args, key)
         for arg, value in args.items():
             if arg != "material":
-                args[arg] = self.value(f"{key}.{arg}", value, _parameters(HeightField)[arg].default, arg)
+                args[arg] = self.value(f"{key}.{arg}", value, params[arg].default, arg)
         return self.construct(lambda: HeightField(height, **args), key)
 
     def array_file(self, name, key):

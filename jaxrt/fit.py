@@ -33,8 +33,7 @@ def l2_loss(image, target, weights=None):
     `weights` (broadcastable to the images, default 1) can mask or emphasise pixels.
     """
     r = image - target
-    w = jnp.ones_like(r) if weights is None else jnp.broadcast_to(weights, r.shape)
-    return jnp.sum(w * r * r) / jnp.maximum(jnp.sum(w), 1e-30)
+    return _weighted_mean(r * r, weights)
 
 
 def l1_loss(image, target, weights=None, delta=0.0):
@@ -44,12 +43,14 @@ def l1_loss(image, target, weights=None, delta=0.0):
     the Charbonnier form sqrt(x² + δ²) − δ, smooth at 0 and |x| − δ far from it.
     """
     r = image - target
-    w = jnp.ones_like(r) if weights is None else jnp.broadcast_to(weights, r.shape)
-    if delta > 0.0:
-        rho = jnp.sqrt(r * r + delta * delta) - delta
-    else:
-        rho = jnp.abs(r)
-    return jnp.sum(w * rho) / jnp.maximum(jnp.sum(w), 1e-30)
+    rho = jnp.sqrt(r * r + delta * delta) - delta if delta > 0.0 else jnp.abs(r)
+    return _weighted_mean(rho, weights)
+
+
+def _weighted_mean(values, weights):
+    """Σ w · values / Σ w, with w = `weights` broadcast to the values (default 1)."""
+    w = jnp.ones_like(values) if weights is None else jnp.broadcast_to(weights, values.shape)
+    return jnp.sum(w * values) / jnp.maximum(jnp.sum(w), 1e-30)
 
 
 def image_residuals(render_image, target, weights=None):

@@ -4,7 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from . import silhouette
+from . import sharding, silhouette
 from .camera import pixel_samples
 from .integrator import trace_radiance
 from .kernels.fused import resolve_backend
@@ -70,15 +70,12 @@ def _render(scene, camera, settings):
 
     if settings.devices == 1:
         out = trace_rows((scene, camera), samples, h)
-    else:  # bands of rows on several devices (jaxrt.sharding)
-        from .sharding import local_devices, shard_rows
-
-        out = shard_rows(trace_rows, (scene, camera), samples, h, local_devices(settings.devices))
+    else:  # bands of rows on several devices, and the image kept in bands on them
+        devices = sharding.local_devices(settings.devices)
+        out = sharding.shard_rows(trace_rows, (scene, camera), samples, h, devices)
     out = {k: v.reshape((h, w, spp) + v.shape[1:]).mean(axis=2) for k, v in out.items()}
-    if settings.devices != 1:  # keep the image in bands on the devices
-        from .sharding import local_devices, rows_sharded
-
-        out = rows_sharded(out, local_devices(settings.devices))
+    if settings.devices != 1:
+        out = sharding.rows_sharded(out, devices)
     return Image(**out)
 
 

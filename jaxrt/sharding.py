@@ -1,16 +1,18 @@
 """Rendering on several devices: the image's rows sharded with `jax.sharding`.
 
-`RenderSettings(devices=D)` makes `render` split the image into bands of rows dealt
-to the local devices in turn (`BAND_ROWS` rows each), with `jax.shard_map` over a one-axis `Mesh` ("pixels"): each device
-traces its band with the whole scene (replicated, a few kilobytes) and the bands are
-the shards of the output arrays. Rays are independent, so the devices never talk to
-each other; the image is the same as on one device (the same program on the same
-rays). `devices=0` uses every local device.
+`RenderSettings(devices=D)` makes `render` split the image's rows over the local
+devices with `jax.shard_map` over a one-axis `Mesh` ("pixels"): each device traces its
+rows with the whole scene (replicated, a few kilobytes), and the bands of rows are the
+shards of the output arrays. By default each device gets one contiguous band, and rays
+being independent the devices never talk to each other; with `BAND_ROWS` > 0 narrower
+bands are dealt to the devices in turn and dealt back with one `all_to_all`
+(`shard_rows`). Either way the image is the same as on one device (the same program on
+the same rays). `devices=0` uses every local device.
 
 Several hosts: call `jax.distributed.initialize()` on every host first (see JAX's
 "multi-process" guide); `jax.devices()` then lists the devices of all hosts and
-`sharded_map(fn, args, devices=jax.devices())` shards over all of them, each process
-holding its own band of the result (a global `jax.Array`).
+`shard_rows(fn, replicated, samples, rows, devices=jax.devices())` shards over all of
+them, each process holding its own band of the result (a global `jax.Array`).
 
 Fitting with several views: shard the *views* instead, `jax.shard_map` over a mesh
 whose axis splits the batch of cameras, with the scene replicated and the loss summed

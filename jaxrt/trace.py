@@ -221,6 +221,7 @@ def _march(sdf, origin, direction, settings, cone, t_max):
         t, r = s["t"], s["r"]
         eps = hit_epsilon(settings, t, cone)
         new = dict(s)
+        fail = None  # ω = 1: no step can fail, and the selects below vanish at trace time
         if relax:
             # Over-relaxation fall-back (Keinert et al. 2014): if the unbounding spheres
             # of the previous and current samples do not overlap, the long step may have
@@ -228,17 +229,12 @@ def _march(sdf, origin, direction, settings, cone, t_max):
             t_prev, r_prev, omega = s["t_prev"], s["r_prev"], s["omega"]
             fail = (omega > 1.0) & (r + r_prev < t - t_prev) & (s["steps"] > 0)
 
-            def unless_fail(a, b):
-                return jnp.where(fail, a, b)
+        def unless_fail(a, b):
+            return b if fail is None else jnp.where(fail, a, b)
 
-            def accepted(x):
-                return (~fail) & x
-        else:  # ω = 1: no step can fail; the selects below vanish at trace time
-            def unless_fail(a, b):
-                return b
+        def accepted(x):
+            return x if fail is None else (~fail) & x
 
-            def accepted(x):
-                return x
         is_hit = accepted(r < eps)
         # Near misses: when f/r grows again, the previous sample was a local minimum.
         ratio = ratio_at(t, r)

@@ -111,32 +111,26 @@ def _broadcast(x, block, dtype, ctx=None):
 
 
 def _const_lane(c, dtype, ctx):
-    """The constant `c` as a full lane, computed from a traced lane (ctx.anchor) when
-    there is one: a constant array built from constants alone may be evaluated at trace
-    time, and a Pallas kernel must not capture arrays."""
+    """The constant `c` as a full lane, computed from a traced value when there is one:
+    a constant array built from constants alone may be evaluated at trace time, and a
+    Pallas kernel must not capture arrays. The traced value is ctx.int_anchor (an
+    integer scalar, a program id: i·0 folds to 0 at compile time, so the lane is a
+    splat of the constant) or else ctx.anchor (a per-ray lane; x·0.0 does not fold)."""
     dtype = np.dtype(dtype)
-    if ctx.anchor is None:
+    source = ctx.anchor if ctx.int_anchor is None else ctx.int_anchor
+    if source is None:
         return jnp.broadcast_to(jnp.asarray(c, dtype), ctx.block)
     # Cached per trace scope (ctx.scopes: one dict per loop body being traced): a lane
     # staged inside a loop body must not be reused outside it (a leaked tracer), and
     # within a scope each constant is one lane, not one multiply-add per use.
     key = (dtype.str, np.asarray(c, dtype).tobytes())
     cache = ctx.scopes[-1]
-    if key not in cache and ctx.int_anchor is not None:
-        # From a traced integer scalar (a program id): i·0 folds to 0 at compile time,
-        # so the lane is a splat of the constant (x·0 of a float lane does not fold).
-        zero = lax.convert_element_type(ctx.int_anchor * 0,
+    if key not in cache:
+        zero = lax.convert_element_type(source * 0,
                                         np.int32 if dtype == np.dtype(bool) else dtype)
         value = (zero + np.int32(bool(c))) != 0 if dtype == np.dtype(bool) else \
             zero + np.asarray(c, dtype)[()]
         cache[key] = jnp.broadcast_to(value, ctx.block)
-    if key not in cache:
-        zero = lax.convert_element_type(ctx.anchor * 0,
-                                        np.int32 if dtype == np.dtype(bool) else dtype)
-        if dtype == np.dtype(bool):
-            cache[key] = (zero + np.int32(bool(c))) != 0
-        else:
-            cache[key] = zero + np.asarray(c, dtype)[()]
     return cache[key]
 
 

@@ -55,8 +55,8 @@ class Union(SDF):
 
     The material is that of the nearest child (the first one on ties). Children of one
     structure (same node types and static fields, e.g. many `Translate(Sphere)` with
-    one material) are evaluated stacked, `jax.vmap` over their leaves and an argmin,
-    when a group has at least `stack.STACK_THRESHOLD` members: the traced program holds
+    one material) are evaluated stacked, one `lax.scan` over their stacked leaves, when
+    a group has at least `stack.STACK_THRESHOLD` members: the traced program holds
     one copy per *kind* of child, so compile time stays flat as children are added
     (`jaxrt.sdf.stack`). `children_` stays the user-facing field: `eqx.tree_at(lambda
     s: s.children_[i].radius, ...)` and gradients reach every child.
