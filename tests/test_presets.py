@@ -31,17 +31,28 @@ def reference(scene_camera):
     return np.asarray(jr.render(scene, camera, jr.RenderSettings.preset("reference", base=base)).rgb)
 
 
-@pytest.mark.parametrize("name", sorted(PRESET_CLAIMS))
-def test_preset_error_within_claim(scene_camera, reference, name):
+@pytest.fixture(scope="module")
+def preset_rmse(scene_camera, reference):
+    """RMSE of linear RGB against the reference, per claimed preset (at 16 spp)."""
     scene, camera = scene_camera
-    settings = jr.RenderSettings.preset(name, base=jr.RenderSettings(shadows="soft"), spp=16)
-    rgb = np.asarray(jr.render(scene, camera, settings).rgb)
-    rmse = float(np.sqrt(np.mean((rgb - reference) ** 2)))
-    assert np.isfinite(rgb).all()
-    assert rmse <= PRESET_CLAIMS[name], (name, rmse)
-    # the claims are tight enough to say something: balanced is the more accurate
-    if name == "balanced":
-        assert PRESET_CLAIMS["balanced"] < PRESET_CLAIMS["fast"]
+    out = {}
+    for name in PRESET_CLAIMS:
+        settings = jr.RenderSettings.preset(name, base=jr.RenderSettings(shadows="soft"), spp=16)
+        rgb = np.asarray(jr.render(scene, camera, settings).rgb)
+        assert np.isfinite(rgb).all()
+        out[name] = float(np.sqrt(np.mean((rgb - reference) ** 2)))
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(PRESET_CLAIMS))
+def test_preset_error_within_claim(preset_rmse, name):
+    assert preset_rmse[name] <= PRESET_CLAIMS[name], (name, preset_rmse[name])
+
+
+def test_balanced_is_more_accurate_than_fast(preset_rmse):
+    # measured, not only claimed: the presets sit in order on the front
+    assert PRESET_CLAIMS["balanced"] < PRESET_CLAIMS["fast"]
+    assert preset_rmse["balanced"] < preset_rmse["fast"], preset_rmse
 
 
 def test_preset_keeps_the_scene_dials_and_applies_changes():
