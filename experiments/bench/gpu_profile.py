@@ -11,12 +11,15 @@ number, largest first: the fused render kernel and the XLA kernels around it.
 import argparse
 import glob
 import os
+import sys
 import tempfile
 import tomllib
 from collections import defaultdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(Path(__file__).parent))
+from warp_scene import _set_kernel_knobs  # noqa: E402  (the variants' Pallas knobs)
 
 
 def main(argv=None):
@@ -45,13 +48,12 @@ def main(argv=None):
                                          height=args.height or section["height"])
     dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
     from jaxrt import sharding
-    from jaxrt.kernels import fused
 
     runs = [(name, d, b) for name in (args.variant or ["pallas-fast"]) for d in (args.devices or [1])
             for b in ((args.band_rows or [sharding.BAND_ROWS]) if d != 1 else [sharding.BAND_ROWS])]
     for name, devices, band_rows in runs:
         overrides = dict(cfg["variants"][name])
-        fused.PALLAS_NUM_WARPS = overrides.pop("kernel", {}).get("num_warps")
+        _set_kernel_knobs(overrides.pop("kernel", {}))
         sharding.BAND_ROWS = band_rows
         settings = base.replace(**overrides, devices=devices)
         name = f"{name} devices={devices}" + (f" band_rows={band_rows}" if devices != 1 else "")

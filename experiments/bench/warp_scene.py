@@ -184,6 +184,7 @@ def _set_kernel_knobs(knobs):
     fused.PALLAS_NUM_WARPS = knobs.get("num_warps")  # None: the library's choice
     fused.UNROLL = knobs.get("unroll", 1)
     fused.PALLAS_FAST_MATH = knobs.get("fast_math", False)
+    fused.PALLAS_FMA = knobs.get("fma", True)
 
 
 def _render_at(scene, camera, settings, dx, dy):

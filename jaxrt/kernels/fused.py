@@ -49,10 +49,15 @@ UNROLL = 1
 #: once the stores were reductions (XLA removed the optimization barriers used before).
 MATERIALIZE = True
 
-#: Pallas kernels use `lanes._fast_math` (sqrt via rsqrt; division by shared values as a
-#: multiplication): images agree with the exact forms to a few ulps. Off: on an H100 the
-#: Warp scene rendered in 0.54 ms with it and 0.51 ms without (same run), so arithmetic
-#: is not what bounds the kernel.
+#: Pallas kernels fuse a product used once by an add or sub into a fused multiply-add
+#: (PTX `fma.rn.f32`: one rounding instead of two; Triton as JAX drives it does not
+#: contract them itself).
+PALLAS_FMA = True
+
+#: Pallas kernels use `lanes._fast_math`: per-ray sqrt, rsqrt and division as PTX's
+#: approximate instructions (`sqrt.approx.ftz` and so on, what CUDA's --use_fast_math
+#: compiles), division by shared values as a multiplication: images agree with the
+#: exact forms to a few ulps.
 PALLAS_FAST_MATH = False
 
 #: Elementwise primitives that Pallas' Triton lowering lacks (jax 0.10/0.11): a program
@@ -224,6 +229,29 @@ def pallas_block(settings):
     return max(16, 1 << (int(b).bit_length() - 1))
 
 
+def _ptx_ops(interpret):
+    """`lanes.eval_lanes`'s `ptx` operations: inline PTX in a Triton kernel; their plain
+    JAX forms in interpret mode (so that tests run the same lane program on a CPU)."""
+    if interpret:
+        return {"fma": lambda x, y, z: x * y + z, "sqrt": jnp.sqrt, "rsqrt": lax.rsqrt,
+                "div": jnp.divide}
+    from jax.experimental.pallas import triton as pltriton
+
+    def op(instruction, arity):
+        operands = ", ".join(f"${k}" for k in range(arity + 1))
+
+        def f(*xs):
+            [r] = pltriton.elementwise_inline_asm(
+                f"{instruction} {operands};", args=list(xs),
+                constraints=",".join(["=f"] + ["f"] * arity), pack=1,
+                result_shape_dtypes=[jax.ShapeDtypeStruct(xs[0].shape, xs[0].dtype)])
+            return r
+        return f
+
+    return {"fma": op("fma.rn.f32", 3), "sqrt": op("sqrt.approx.ftz.f32", 1),
+            "rsqrt": op("rsqrt.approx.ftz.f32", 1), "div": op("div.approx.ftz.f32", 2)}
+
+
 def _pow2(n, at_least=1):
     return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
@@ -258,6 +286,9 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
         return v > 0.5
 
     interpret = (jax.default_backend() != "gpu") if INTERPRET is None else INTERPRET
+    ptx = None
+    if dtype == jnp.float32 and (PALLAS_FMA or PALLAS_FAST_MATH):
+        ptx = {k: f for k, f in _ptx_ops(interpret).items() if PALLAS_FMA or k != "fma"}
 
     def kernel(p_ref, *refs):
         if centres:  # pixel centres of the grid, computed here: no sample array to read
@@ -278,7 +309,8 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
         args += [_lane(px), _lane(py)]
         outs = eval_lanes(closed, args, (th, tw), any_lane=any_lane,
                           unroll=settings_unroll(settings), fast_math=PALLAS_FAST_MATH,
-                          unsupported=TRITON_UNSUPPORTED, int_anchor=pl.program_id(0))
+                          unsupported=TRITON_UNSUPPORTED, int_anchor=pl.program_id(0),
+                          ptx=ptx)
         r = 0
         zero = px * 0  # outputs that are constants: lanes computed from a traced zero
         for o in outs:
@@ -313,6 +345,7 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
         in_specs=in_specs,
         out_specs=[tile_spec] * lanes_out,
         interpret=interpret,
+        name="jaxrt_render",
         **kwargs,
     )
     planes = [x[:rows, :cols].reshape(rows * cols) for x in call(*args)]

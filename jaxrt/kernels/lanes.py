@@ -29,6 +29,7 @@ floating-point operations), so images agree with the vmapped path to rounding. T
 forward pass only: differentiate through the reference path (see `fused.py`).
 """
 
+import collections
 import functools
 import itertools
 import math
@@ -139,6 +140,7 @@ class _Ctx:
 
     def __init__(self, block, any_lane, unroll, materialize=False, fast_math=False):
         self.fast_math = fast_math
+        self.ptx = None
         self.anchor = None
         self.int_anchor = None
         self.scopes = [{}]
@@ -178,7 +180,7 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
             out = prim.bind(*[jnp.asarray(x) for x in lanes], **params)
         return np.asarray(out).astype(out_dtype)[()]
     if ctx.fast_math and out_dtype == np.dtype(np.float32):
-        fast = _fast_math(prim.name, lanes, ctx)
+        fast = _fast_math(prim.name, lanes, ctx, out_dtype)
         if fast is not None:
             return fast
     shapes = {_lane_shape(x) for x in lanes}
@@ -193,22 +195,44 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
     return prim.bind(*ops, **params)
 
 
-def _fast_math(name, lanes, ctx):
-    """Cheaper float32 forms for a GPU kernel (within a few ulps of the exact ones):
-    sqrt(x) as x·rsqrt(x) (one special-function instruction instead of IEEE sqrt), and
-    division of per-ray values by a value shared by all rays (a scene parameter, say a
-    Lipschitz factor) as multiplication by its reciprocal, computed once."""
-    if name == "sqrt":
+def _fast_math(name, lanes, ctx, dtype):
+    """Cheaper float32 forms for a GPU kernel (within a few ulps of the exact ones).
+
+    With `ctx.ptx` (a Triton kernel: {name: function of [block] lanes}, see
+    `fused.PTX`): per-ray sqrt, rsqrt and division as the approximate PTX instructions
+    `sqrt.approx.ftz`, `rsqrt.approx.ftz`, `div.approx.ftz` (one special-function
+    instruction, or a reciprocal and a multiply, instead of a range-checked sequence),
+    as CUDA's `--use_fast_math` compiles them; x + 0 as x (IEEE keeps the add for
+    x = −0). Without it: sqrt(x) as x·rsqrt(x). Both: division of per-ray values by a
+    value shared by all rays (a scene parameter, say a Lipschitz factor) as
+    multiplication by its reciprocal, computed once."""
+    ptx = ctx.ptx
+    if name in ("add", "add_any") and ptx is not None:
+        a, b = lanes
+        for x, y in ((a, b), (b, a)):
+            if _is_const(y) and float(y) == 0.0 and not _is_const(x) and x.dtype == dtype:
+                return x
+        return None
+    if name in ("sqrt", "rsqrt"):
         (x,) = lanes
         if _lane_shape(x) == ():
+            return None
+        if ptx is not None:
+            return ptx[name](x)
+        if name == "rsqrt":
             return None
         ok = x > 0.0
         return jnp.where(ok, x * lax.rsqrt(jnp.where(ok, x, 1.0)), jnp.zeros_like(x))
     if name == "div":
         x, y = lanes
-        if _lane_shape(x) == () or _lane_shape(y) != ():
+        if _lane_shape(x) == () and _lane_shape(y) == ():
             return None
-        return x * (1.0 / jnp.asarray(y, jnp.float32))
+        if _lane_shape(y) == ():
+            return x * (1.0 / jnp.asarray(y, jnp.float32))
+        if ptx is not None:
+            if _is_const(x):
+                x = _const_lane(x, dtype, ctx)
+            return ptx["div"](jnp.broadcast_to(x, y.shape), y)
     return None
 
 
@@ -393,9 +417,14 @@ def _dot_general(eqn, ins, ctx):
             for j in np.ndindex(rfs):
                 a = L[b + i].reshape(-1)
                 c = R[b + j].reshape(-1)
-                terms = [_apply("mul", _convert(x, dtype, ctx), _convert(y, dtype, ctx),
-                                dtype=dtype, ctx=ctx) for x, y in zip(a, c)]
-                out[b + i + j] = _fold(terms, "add", dtype, ctx) if terms else np.asarray(0, dtype)[()]
+                pairs = [(_convert(x, dtype, ctx), _convert(y, dtype, ctx)) for x, y in zip(a, c)]
+                if not pairs:
+                    out[b + i + j] = np.asarray(0, dtype)[()]
+                elif ctx.ptx and "fma" in ctx.ptx and dtype == np.float32:
+                    out[b + i + j] = _sum_of_products(pairs, dtype, ctx)
+                else:
+                    terms = [_apply("mul", x, y, dtype=dtype, ctx=ctx) for x, y in pairs]
+                    out[b + i + j] = _fold(terms, "add", dtype, ctx)
     return [out]
 
 
@@ -972,12 +1001,19 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
             live.update(v for v in eqn.invars if not isinstance(v, jcore.Literal))
         used_eqns.append(used)
     used_eqns.reverse()
+    products, fused = _fma_plan(jaxpr) if ctx.ptx and "fma" in ctx.ptx else ({}, {})
     for eqn, used in zip(jaxpr.eqns, used_eqns):
         if not (any(used) or eqn.effects):
             continue
         ctx.used_outputs = used
         ins = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
+        if eqn.outvars[0] in products:  # a product that its one consumer fuses
+            write(eqn.outvars[0], ins)
+            continue
+        if id(eqn) in fused:
+            write(eqn.outvars[0], _fma(eqn, ins, fused[id(eqn)], ctx))
+            continue
         if name in ctx.unsupported:
             raise Unsupported(f"this backend cannot run the primitive `{name}` of the one-ray "
                               "program; use RenderSettings(backend=\"jax\")")
@@ -996,8 +1032,85 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
     return [read(v) for v in jaxpr.outvars]
 
 
+def _fma_plan(jaxpr):
+    """Products to fuse into fused multiply-adds: float32 `mul`s whose only use is an
+    `add`/`sub` of the same shape or a `reduce_sum` in the same jaxpr. Returns (the
+    products' variables, {id of the consumer equation: index of the product among its
+    operands})."""
+    uses = collections.Counter(v for e in jaxpr.eqns for v in e.invars
+                               if not isinstance(v, jcore.Literal))
+    uses.update(v for v in jaxpr.outvars if not isinstance(v, jcore.Literal))
+    muls = {e.outvars[0]: e for e in jaxpr.eqns
+            if e.primitive.name == "mul" and e.outvars[0].aval.dtype == np.float32}
+    products, fused = {}, {}
+    for e in jaxpr.eqns:
+        if e.primitive.name not in ("add", "add_any", "sub", "reduce_sum"):
+            continue
+        for k, v in enumerate(e.invars):
+            if (not isinstance(v, jcore.Literal) and v in muls and uses[v] == 1
+                    and v not in products and (e.primitive.name == "reduce_sum"
+                                               or v.aval.shape == e.outvars[0].aval.shape)):
+                products[v] = muls[v]
+                fused[id(e)] = k
+                break
+    return products, fused
+
+
+def _neg(x):
+    return -x if _is_const(x) else lax.neg(x)
+
+
+def _fma_lane(a, b, c, dtype, ctx):
+    """a·b + c, one lane each: one fused multiply-add (one rounding) where the product
+    varies per ray, the plain multiply and add where it is shared by all rays."""
+    if _lane_shape(a) == () and _lane_shape(b) == ():
+        return _apply("add", _apply("mul", a, b, dtype=dtype, ctx=ctx), c, dtype=dtype, ctx=ctx)
+    a, b, c = (_broadcast(v, ctx.block, dtype, ctx) for v in (a, b, c))
+    return ctx.ptx["fma"](a, b, c)
+
+
+def _sum_of_products(pairs, dtype, ctx):
+    """Σ x·y over lane pairs as a chain of fused multiply-adds."""
+    (x, y), rest = pairs[0], pairs[1:]
+    acc = _apply("mul", x, y, dtype=dtype, ctx=ctx)
+    for x, y in rest:
+        acc = _fma_lane(x, y, acc, dtype, ctx)
+    return acc
+
+
+def _fma(eqn, ins, k, ctx):
+    """The consumer `eqn` (add, sub or reduce_sum) of the deferred product ins[k] =
+    [x, y] (object arrays): x·y + z, x·y − z = fma(x, y, −z), z − x·y = fma(−x, y, z),
+    or a sum of products."""
+    x, y = ins[k]
+    dtype = eqn.outvars[0].aval.dtype
+    if eqn.primitive.name == "reduce_sum":
+        x, y = np.broadcast_arrays(x, y)
+        axes = tuple(eqn.params["axes"])
+        keep = [a for a in range(x.ndim) if a not in axes]
+        x, y = (np.transpose(v, keep + list(axes)) for v in (x, y))
+        out_shape = x.shape[: len(keep)]
+        x, y = (v.reshape(out_shape + (-1,)) for v in (x, y))
+        out = _obj(out_shape)
+        for idx in np.ndindex(out_shape):
+            out[idx] = _sum_of_products(list(zip(x[idx], y[idx])), dtype, ctx)
+        return out
+    shape = eqn.outvars[0].aval.shape
+    sub = eqn.primitive.name == "sub"
+    x, y, z = np.broadcast_arrays(x, y, ins[1 - k])
+    out = _obj(shape)
+    for idx in np.ndindex(shape):
+        a, b, c = x[idx], y[idx], z[idx]
+        if sub and k == 0:
+            c = _neg(c)
+        elif sub:
+            a = _neg(a)
+        out[idx] = _fma_lane(a, b, c, dtype, ctx)
+    return out
+
+
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
-               fast_math=False, unsupported=(), int_anchor=None):
+               fast_math=False, unsupported=(), int_anchor=None, ptx=None):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -1015,12 +1128,16 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
       unsupported: primitive names the target cannot compile (raise `Unsupported`).
       int_anchor: a traced integer scalar (a Pallas program id) from which constant
         lanes are built (`_const_lane`), so that they fold to splats.
+      ptx: {"fma", "sqrt", "rsqrt", "div": function of [block] lanes}: the target's
+        fused multiply-add (a product used once by an add or sub is fused into it) and,
+        with fast_math, its approximate sqrt/rsqrt/division (`_fast_math`).
 
     Returns: one object array of lanes per output of the program.
     """
     ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize, fast_math)
     ctx.unsupported = frozenset(unsupported)
     ctx.int_anchor = int_anchor
+    ctx.ptx = ptx
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
