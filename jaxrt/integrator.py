@@ -80,12 +80,6 @@ def spawn_offset(p, settings, epsilon=None):
     return settings.ray_offset * (eps + rounding)
 
 
-#: Newton steps that settle a spawned origin on the level set f = ±offset (see
-#: `spawn_origin`): one per face that can be nearer than the offset; two settle the
-#: edges and corners of boxes (a third face is then already ≥ offset away).
-SPAWN_STEPS = 2
-
-
 def surface_distance(scene, which, x):
     """Distance bound of surface `which` (0: the SDF, scaled by 1/L; k: height field
     k − 1) at x: the function whose ε band the marchers test."""
@@ -94,29 +88,31 @@ def surface_distance(scene, which, x):
     return select(values, which)
 
 
-def spawn_origin(scene, which, p, n, offset, side):
+def spawn_origin(scene, which, p, n, offset, side, steps=2):
     """Origin of a secondary ray that leaves surface `which` at p along the side of the
     unit normal n (n points to where the ray goes: outward for a reflection seen from
     outside, inward for a refraction into the object, …); side = +1 if that is the
     outside of the surface, −1 the inside.
 
-    x₀ = p + offset · n, then SPAWN_STEPS Newton steps towards the level set
-    f(x) = side · offset of the surface's distance bound f:
+    x₀ = p + offset · n, then `steps` (settings.spawn_steps) Newton steps towards the
+    level set f(x) = side · offset of the surface's distance bound f:
     x ← x − (f(x) − side · offset) ∇f / |∇f|².
     Along a smooth surface x₀ is already there and the steps change nothing; near an
     edge or a corner, where another face of the same surface is nearer than `offset`,
     they push the origin out of that face's ε band too, where the ray would otherwise
-    re-hit it at t = 0. The correction carries no gradient (the origin's gradient is
+    re-hit it at t = 0 (one step per face that can be nearer than the offset: two settle
+    the edges and corners of boxes, a third face is then already ≥ offset away). The
+    correction carries no gradient (the origin's gradient is
     that of p). p, n, offset and side may carry a leading batch axis (several origins
     from one hit share one compiled step).
     """
     if p.ndim > 1:
-        return jax.vmap(lambda *a: spawn_origin(scene, which, *a))(p, n, offset, side)
+        return jax.vmap(lambda *a: spawn_origin(scene, which, *a, steps=steps))(p, n, offset, side)
     x0 = p + offset * n
     x = jax.lax.stop_gradient(x0)
     f_and_grad = jax.value_and_grad(lambda q: surface_distance(scene, which, q))
     target = jax.lax.stop_gradient(side * offset)
-    for _ in range(SPAWN_STEPS):
+    for _ in range(steps):
         f, g = f_and_grad(x)
         x = x - safe_div(f - target, dot(g, g)) * g
     return x0 + jax.lax.stop_gradient(x - x0)
@@ -363,7 +359,8 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
         toward = jnp.asarray(sides, dtype)
         outside = jnp.where(entering, toward, -toward)
         starts = spawn_origin(scene, hit.surface, jnp.broadcast_to(p, (len(sides), 3)),
-                              toward[:, None] * n, jnp.broadcast_to(offset, (len(sides),)), outside)
+                              toward[:, None] * n, jnp.broadcast_to(offset, (len(sides),)), outside,
+                              steps=settings.spawn_steps)
         origins = {side: starts[k] for k, side in enumerate(sides)}
     above, below = origins.get(1.0), origins.get(-1.0)
     if tree.direct:

@@ -56,6 +56,10 @@ class RenderSettings:
       ray_offset       secondary rays start ray_offset · (ε + 8 ulp·max|pᵢ|) off the
                        surface (multiples of the hit epsilon plus the rounding error of
                        p; `integrator.spawn_offset`); must exceed 1 to leave the ε band.
+      spawn_steps      Newton steps that settle a secondary ray's origin on the level
+                       set f = ±offset (`integrator.spawn_origin`): two clear the edges
+                       and corners of boxes, where another face is nearer than the
+                       offset; 0 starts at p + offset·n (shadow acne along edges).
     Sampling
       spp              samples per pixel, stratified (N-rooks) with a fixed seed,
                        averaged with a box filter; 1 = pixel centres.
@@ -120,6 +124,7 @@ class RenderSettings:
     shadow_max_distance: float | None = None
     max_depth: int = 2
     ray_offset: float = 4.0
+    spawn_steps: int = 2
     spp: int = 1
     seed: int = 0
     wavelengths: int = 0
@@ -167,6 +172,7 @@ class RenderSettings:
         )
         need(_is_int(self.max_depth) and 0 <= self.max_depth <= 16, "max_depth", "an integer in [0, 16]")
         need(_is_num(self.ray_offset) and self.ray_offset > 0, "ray_offset", "a number > 0")
+        need(_is_int(self.spawn_steps) and self.spawn_steps >= 0, "spawn_steps", "an integer ≥ 0")
         need(self.recursion in _RECURSIONS, "recursion", f"one of {_RECURSIONS}")
         need(_is_int(self.spp) and self.spp >= 1, "spp", "an integer ≥ 1")
         need(_is_int(self.seed), "seed", "an integer")

@@ -181,10 +181,20 @@ def main(argv=None):
 def _set_kernel_knobs(knobs):
     from jaxrt.kernels import fused
 
-    fused.PALLAS_NUM_WARPS = knobs.get("num_warps")  # None: the library's choice
-    fused.UNROLL = knobs.get("unroll", 1)
-    fused.PALLAS_FAST_MATH = knobs.get("fast_math", False)
-    fused.PALLAS_FMA = knobs.get("fma", True)
+    defaults = _KERNEL_DEFAULTS.setdefault("knobs", {k: getattr(fused, k) for k in (
+        "PALLAS_NUM_WARPS", "UNROLL", "PALLAS_UNROLL", "PALLAS_FAST_MATH", "PALLAS_FMA",
+        "PALLAS_UNIFORMS")})
+    for key, value in defaults.items():  # the library's choices unless the variant says
+        setattr(fused, key, value)
+    for name, value in knobs.items():
+        keys = {"num_warps": ["PALLAS_NUM_WARPS"], "unroll": ["UNROLL", "PALLAS_UNROLL"],
+                "fast_math": ["PALLAS_FAST_MATH"], "fma": ["PALLAS_FMA"],
+                "uniforms": ["PALLAS_UNIFORMS"]}[name]
+        for key in keys:
+            setattr(fused, key, value)
+
+
+_KERNEL_DEFAULTS = {}
 
 
 def _render_at(scene, camera, settings, dx, dy):

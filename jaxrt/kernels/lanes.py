@@ -40,7 +40,7 @@ import numpy as np
 from jax import lax
 from jax.extend import core as jcore
 
-__all__ = ["eval_lanes", "lanes_of", "stack_lanes", "Unsupported"]
+__all__ = ["eval_lanes", "lanes_of", "stack_lanes", "Uniforms", "Unsupported"]
 
 
 class Unsupported(NotImplementedError):
@@ -141,6 +141,7 @@ class _Ctx:
     def __init__(self, block, any_lane, unroll, materialize=False, fast_math=False):
         self.fast_math = fast_math
         self.ptx = None
+        self.uniforms = None
         self.anchor = None
         self.int_anchor = None
         self.scopes = [{}]
@@ -179,12 +180,19 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
         with jax.ensure_compile_time_eval():
             out = prim.bind(*[jnp.asarray(x) for x in lanes], **params)
         return np.asarray(out).astype(out_dtype)[()]
+    shapes = {_lane_shape(x) for x in lanes}
+    shape = max(shapes, key=len)
+    if shape == () and ctx.uniforms is not None and ctx.loop_depth == 0:
+        out = ctx.uniforms(prim, lanes, params, out_dtype)
+        if out is not None:
+            return out
     if ctx.fast_math and out_dtype == np.dtype(np.float32):
         fast = _fast_math(prim.name, lanes, ctx, out_dtype)
         if fast is not None:
             return fast
-    shapes = {_lane_shape(x) for x in lanes}
-    shape = max(shapes, key=len)
+    if prim.name == "neg" and ctx.ptx and "neg" in ctx.ptx and out_dtype == np.float32 \
+            and shape == ctx.block:
+        return ctx.ptx["neg"](lanes[0])
     ops = []
     for x in lanes:
         if _is_const(x):
@@ -202,8 +210,9 @@ def _fast_math(name, lanes, ctx, dtype):
     `fused.PTX`): per-ray sqrt, rsqrt and division as the approximate PTX instructions
     `sqrt.approx.ftz`, `rsqrt.approx.ftz`, `div.approx.ftz` (one special-function
     instruction, or a reciprocal and a multiply, instead of a range-checked sequence),
-    as CUDA's `--use_fast_math` compiles them; x + 0 as x (IEEE keeps the add for
-    x = −0). Without it: sqrt(x) as x·rsqrt(x). Both: division of per-ray values by a
+    exp, log and pow through `ex2.approx`/`lg2.approx` (x^y = 2^(y·log2 x): NaN for
+    x < 0), as CUDA's `--use_fast_math` compiles them; x + 0 as x (IEEE keeps the add
+    for x = −0). Without it: sqrt(x) as x·rsqrt(x). Both: division of per-ray values by a
     value shared by all rays (a scene parameter, say a Lipschitz factor) as
     multiplication by its reciprocal, computed once."""
     ptx = ctx.ptx
@@ -213,16 +222,22 @@ def _fast_math(name, lanes, ctx, dtype):
             if _is_const(y) and float(y) == 0.0 and not _is_const(x) and x.dtype == dtype:
                 return x
         return None
-    if name in ("sqrt", "rsqrt"):
+    if name in ("sqrt", "rsqrt", "exp", "log"):
         (x,) = lanes
         if _lane_shape(x) == ():
             return None
         if ptx is not None:
             return ptx[name](x)
+        if name in ("exp", "log"):
+            return None
         if name == "rsqrt":
             return None
         ok = x > 0.0
         return jnp.where(ok, x * lax.rsqrt(jnp.where(ok, x, 1.0)), jnp.zeros_like(x))
+    if name == "pow" and ptx is not None and (_lane_shape(lanes[0]) != () or
+                                               _lane_shape(lanes[1]) != ()):
+        x, y = (_broadcast(v, ctx.block, dtype, ctx) for v in lanes)
+        return ptx["pow"](x, y)
     if name == "div":
         x, y = lanes
         if _lane_shape(x) == () and _lane_shape(y) == ():
@@ -1056,8 +1071,10 @@ def _fma_plan(jaxpr):
     return products, fused
 
 
-def _neg(x):
-    return -x if _is_const(x) else lax.neg(x)
+def _neg(x, ctx):
+    if _is_const(x) or _lane_shape(x) == () or "neg" not in ctx.ptx:
+        return -x if _is_const(x) else lax.neg(x)
+    return ctx.ptx["neg"](x)
 
 
 def _fma_lane(a, b, c, dtype, ctx):
@@ -1102,15 +1119,51 @@ def _fma(eqn, ins, k, ctx):
     for idx in np.ndindex(shape):
         a, b, c = x[idx], y[idx], z[idx]
         if sub and k == 0:
-            c = _neg(c)
+            c = _neg(c, ctx)
         elif sub:
-            a = _neg(a)
+            a = _neg(a, ctx)
         out[idx] = _fma_lane(a, b, c, dtype, ctx)
     return out
 
 
+class Uniforms:
+    """Values shared by all rays (functions of the scene's parameters alone: a camera's
+    basis, a normalised light direction, tan(fov/2)), computed once outside a GPU kernel
+    instead of by every thread.
+
+    `eval_lanes` runs twice with the same program and block: first outside the kernel
+    with `Uniforms()` (recording: every elementwise operation on shared scalars outside
+    loops is computed and kept in `values`), then inside it with
+    `Uniforms(read=k ↦ value)` (replaying: the k-th such operation reads the k-th value
+    instead; loads that nothing uses are removed by the compiler, and with them the
+    work). `check` confirms that both runs met the same operations in the same order."""
+
+    def __init__(self, read=None):
+        self.read = read
+        self.values = []
+        self.ops = []
+
+    #: the dtypes kept (as 32-bit words); operations on others run where they are
+    DTYPES = (np.dtype(np.float32), np.dtype(np.int32), np.dtype(bool))
+
+    def __call__(self, prim, lanes, params, dtype):
+        if np.dtype(dtype) not in self.DTYPES:
+            return None
+        self.ops.append((prim.name, np.dtype(dtype).str))
+        if self.read is not None:
+            return self.read(len(self.ops) - 1, dtype)
+        out = prim.bind(*[jnp.asarray(x) for x in lanes], **params)
+        self.values.append(out)
+        return out
+
+    def check(self, recorded):
+        if self.ops != recorded.ops:
+            raise RuntimeError("lanes.Uniforms: the kernel's shared values do not match the "
+                               "recorded ones (the two evaluations diverged)")
+
+
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
-               fast_math=False, unsupported=(), int_anchor=None, ptx=None):
+               fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -1131,6 +1184,7 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
       ptx: {"fma", "sqrt", "rsqrt", "div": function of [block] lanes}: the target's
         fused multiply-add (a product used once by an add or sub is fused into it) and,
         with fast_math, its approximate sqrt/rsqrt/division (`_fast_math`).
+      uniforms: a `Uniforms`, recording or replaying the values shared by all rays.
 
     Returns: one object array of lanes per output of the program.
     """
@@ -1138,6 +1192,7 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     ctx.unsupported = frozenset(unsupported)
     ctx.int_anchor = int_anchor
     ctx.ptx = ptx
+    ctx.uniforms = uniforms
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
