@@ -55,11 +55,12 @@ def _render(scene, camera, settings):
             out = silhouette.blend(scene, camera, xy, out, settings)
         return {k: out[k] for k in ("rgb",) + settings.aovs}
 
-    def trace_rows(params, samples, rows):
-        """Every sample of `rows` image rows (all of them, or one device's band)."""
+    def trace_block(params, samples, grid, offset):
+        """Every sample of a block of the image (all of it, or one device's block):
+        `grid` (rows, columns of samples), `offset` its first (row, column)."""
         scene, camera = params
         if resolve_backend(settings.backend) != "jax":
-            return _fused(scene, camera, samples, settings, kernel, rows, centres=rows == h)
+            return _fused(scene, camera, samples, settings, kernel, grid, offset)
         origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
         rays = (origins, directions, cones, samples)
         n = samples.shape[0]
@@ -69,19 +70,21 @@ def _render(scene, camera, settings):
                            batch_size=settings.batch_size)
 
     if settings.devices == 1:
-        out = trace_rows((scene, camera), samples, h)
-    else:  # bands of rows on several devices, and the image kept in bands on them
+        out = trace_block((scene, camera), samples, (h, w * spp), (0, 0))
+        out = {k: v.reshape((h, w * spp) + v.shape[1:]) for k, v in out.items()}
+    else:  # a block of the image on each device, and the image kept in blocks on them
         devices = sharding.local_devices(settings.devices)
-        out = sharding.shard_rows(trace_rows, (scene, camera), samples, h, devices)
-    out = {k: v.reshape((h, w, spp) + v.shape[1:]).mean(axis=2) for k, v in out.items()}
+        out = sharding.shard_image(trace_block, (scene, camera), samples, (h, w * spp), devices)
+    out = {k: v.reshape((h, w, spp) + v.shape[2:]).mean(axis=2) for k, v in out.items()}
     if settings.devices != 1:
-        out = sharding.rows_sharded(out, devices)
+        out = sharding.image_sharded(out, devices)
     return Image(**out)
 
 
-def _fused(scene, camera, samples, settings, kernel, rows, centres):
+def _fused(scene, camera, samples, settings, kernel, grid, offset):
     """The per-sample kernel run lane-wise by `jaxrt.kernels` (backend "fused"/"pallas"/
-    "auto"); gradients through the vmapped path above."""
+    "auto") on a block `grid` of samples at `offset` in the image; gradients through the
+    vmapped path above."""
     from .kernels.fused import map_samples
 
     def one(params, px, py):
@@ -92,9 +95,9 @@ def _fused(scene, camera, samples, settings, kernel, rows, centres):
         return jax.lax.map(lambda r: kernel(r, *params), rays,
                            batch_size=min(settings.batch_size or s.shape[0], s.shape[0]))
 
-    grid = (rows, camera.width * settings.spp)  # samples are pixel-major
+    # pixel_samples gives pixel centres at spp 1: the Pallas kernel then computes them
     return map_samples(one, (scene, camera), samples, settings, reference, grid=grid,
-                       centres=centres and settings.spp == 1)  # pixel_samples: centres at spp 1
+                       centres=offset if settings.spp == 1 else None)
 
 
 def _dtype(settings):

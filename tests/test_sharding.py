@@ -32,25 +32,41 @@ SCRIPT = textwrap.dedent(
                                   fov=45.0, width=12, height=8)
     base = jr.RenderSettings(shadows="soft", batch_size=32, dtype="float64")
     one = jr.render(scene, camera, base)
-    # 8 rows on 4 devices; on 3 (uneven: padded); in bands of 16 rows (one per device),
-    # dealt in turn row by row, and contiguous
-    for band_rows in (16, 1, 0):
-        jr.sharding.BAND_ROWS = band_rows
+    # 12 columns or 8 rows on 4 devices; on 3 (8 rows: uneven, padded); the jax and the
+    # fused backends (the Pallas kernel, which computes each block's pixel centres from
+    # its offset, in float32 and interpret mode)
+    fields = ("rgb", "depth", "normal", "albedo", "steps", "coverage")
+    for split in ("columns", "rows"):
+        jr.sharding.SPLIT = split
         jax.clear_caches()
         for devices in (4, 3):
             img = jr.render(scene, camera, base.replace(devices=devices))
-            for field in ("rgb", "depth", "normal", "albedo", "steps", "coverage"):
+            for field in fields:
                 a, b = np.asarray(getattr(img, field)), np.asarray(getattr(one, field))
-                assert np.allclose(a, b, rtol=1e-12, atol=1e-12), (band_rows, devices, field,
+                assert np.allclose(a, b, rtol=1e-12, atol=1e-12), (split, devices, field,
                                                                    np.abs(a - b).max())
-    jr.sharding.BAND_ROWS = 16
+        f32 = base.replace(dtype="float32", backend="pallas", batch_size=16)
+        want = jr.render(scene, camera, f32)
+        got = jr.render(scene, camera, f32.replace(devices=3))
+        for field in fields:
+            a, b = np.asarray(getattr(got, field)), np.asarray(getattr(want, field))
+            assert np.allclose(a, b, rtol=1e-5, atol=1e-5), (split, "pallas", field,
+                                                             np.abs(a - b).max())
+    jr.sharding.SPLIT = "columns"
     jax.clear_caches()
-    from jaxrt.sharding import shard_rows
-    rows = jnp.arange(10.0).repeat(3)[:, None] * jnp.ones(2)  # 10 rows of 3 samples
-    got = shard_rows(lambda rep, s, r: {"s": s}, (), rows, 10, jax.devices()[:3], band_rows=2)
-    assert np.array_equal(np.asarray(got["s"]), np.asarray(rows)), got["s"]
+    from jaxrt.sharding import shard_image
+    grid = jnp.stack(jnp.meshgrid(jnp.arange(10.0), jnp.arange(7.0), indexing="ij"), -1)
+    for split in ("rows", "columns"):  # each device sees its block and its offset
+        got = shard_image(lambda rep, s, g, off: {"s": s, "o": jnp.broadcast_to(
+            jnp.stack(off), (s.shape[0], 2))}, (), grid.reshape(-1, 2), (10, 7),
+            jax.devices()[:3], split=split)
+        assert np.array_equal(np.asarray(got["s"]), np.asarray(grid)), (split, got["s"])
+        r, c = np.meshgrid(np.arange(10), np.arange(7), indexing="ij")
+        want = np.stack([r // 4 * 4, 0 * c] if split == "rows" else [0 * r, c // 3 * 3], -1)
+        assert np.array_equal(np.asarray(got["o"]), want), (split, got["o"])
     img = jr.render(scene, camera, base.replace(devices=4))
     assert len(img.rgb.sharding.device_set) == 4, img.rgb.sharding
+    assert img.rgb.sharding.spec == jax.sharding.PartitionSpec(None, "pixels"), img.rgb.sharding
     try:
         jr.render(scene, camera, base.replace(devices=5))
     except ValueError as e:

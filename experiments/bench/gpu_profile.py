@@ -30,8 +30,8 @@ def main(argv=None):
     ap.add_argument("--width", type=int)
     ap.add_argument("--height", type=int)
     ap.add_argument("--devices", type=int, action="append", help="RenderSettings.devices values")
-    ap.add_argument("--band-rows", type=int, action="append",
-                    help="jaxrt.sharding.BAND_ROWS values (0: one contiguous band per device)")
+    ap.add_argument("--split", action="append", choices=["columns", "rows"],
+                    help="jaxrt.sharding.SPLIT values (the image axis cut over the devices)")
     ap.add_argument("--no-trace", action="store_true", help="time only, no profile")
     args = ap.parse_args(argv)
     cfg = tomllib.loads(Path(args.config).read_text())
@@ -49,22 +49,26 @@ def main(argv=None):
     dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
     from jaxrt import sharding
 
-    runs = [(name, d, b) for name in (args.variant or ["pallas-fast"]) for d in (args.devices or [1])
-            for b in ((args.band_rows or [sharding.BAND_ROWS]) if d != 1 else [sharding.BAND_ROWS])]
-    for name, devices, band_rows in runs:
+    runs = [(name, d, s) for name in (args.variant or ["pallas-fast"]) for d in (args.devices or [1])
+            for s in ((args.split or [sharding.SPLIT]) if d != 1 else [sharding.SPLIT])]
+    for name, devices, split in runs:
         overrides = dict(cfg["variants"][name])
         _set_kernel_knobs(overrides.pop("kernel", {}))
-        sharding.BAND_ROWS = band_rows
+        sharding.SPLIT = split
         settings = base.replace(**overrides, devices=devices)
-        name = f"{name} devices={devices}" + (f" band_rows={band_rows}" if devices != 1 else "")
+        name = f"{name} devices={devices}" + (f" split={split}" if devices != 1 else "")
         f = jax.jit(lambda d, settings=settings: _render.__wrapped__(*eqx.combine(d, static), settings))
-        f = f.lower(dyn).compile()
-        f(dyn).rgb.block_until_ready()
+        dyn_ = dyn
+        if devices != 1:  # the scene's arrays on every device, as a fitting loop keeps them
+            mesh = sharding.pixel_mesh(sharding.local_devices(devices))
+            dyn_ = jax.device_put(dyn, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+        f = f.lower(dyn_).compile()
+        f(dyn_).rgb.block_until_ready()
         import time
 
         t0 = time.perf_counter()
         for _ in range(args.calls):
-            out = f(dyn)
+            out = f(dyn_)
         out.rgb.block_until_ready()
         print(f"{name}: {1e3 * (time.perf_counter() - t0) / args.calls:.3f} ms per render "
               f"({args.calls} back to back)", flush=True)
@@ -73,7 +77,7 @@ def main(argv=None):
         tmp = tempfile.mkdtemp()
         with jax.profiler.trace(tmp):
             for _ in range(args.calls):
-                out = f(dyn)
+                out = f(dyn_)
             out.rgb.block_until_ready()
         path = glob.glob(os.path.join(tmp, "**", "*.xplane.pb"), recursive=True)[0]
         pd = jax.profiler.ProfileData.from_file(path)

@@ -82,7 +82,7 @@ TRITON_UNSUPPORTED = ("erf", "erfc", "lgamma", "digamma", "bessel_i0e", "bessel_
 PALLAS_BLOCK = 32
 
 
-def map_samples(fn, params, samples, settings, reference, grid=None, centres=False):
+def map_samples(fn, params, samples, settings, reference, grid=None, centres=None):
     """Evaluate `fn(params, px, py)` for every row of `samples` [N, 2].
 
     Args:
@@ -96,8 +96,9 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Fal
         grid (an image: rows = height, columns = width · spp); tiles are then squares
         of the grid, whose rays are coherent (they stop after similar numbers of
         steps), rather than runs of a row.
-      centres: the samples are the grid's cell centres (column + ½, row + ½); the
-        Pallas kernel then computes them instead of reading them.
+      centres: (row, column) offset of the grid in an image (integers, may be traced)
+        when the samples are the centres of the image's cells (column + ½, row + ½)
+        over the grid; the Pallas kernel then computes them instead of reading them.
 
     Returns: a dict of [N, ...] arrays, the same as `reference` gives.
     """
@@ -289,7 +290,7 @@ def _pow2(n, at_least=1):
     return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
 
-def _pallas(one, dyn, samples, settings, grid, centres=False):
+def _pallas(one, dyn, samples, settings, grid, centres=None):
     from jax.experimental import pallas as pl
 
     dtype = samples.dtype
@@ -300,13 +301,12 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
     rows, cols = grid
     th, tw = tile_shape(pallas_block(settings), grid, pow2=True)
     ty, tx = -(-rows // th), -(-cols // tw)
-    lanes_out = sum(int(np.prod(o.shape)) for o in out_leaves)
     interpret = (jax.default_backend() != "gpu") if INTERPRET is None else INTERPRET
     ptx = None
     if dtype == jnp.float32 and (PALLAS_FMA or PALLAS_FAST_MATH):
         ptx = {k: f for k, f in _ptx_ops(interpret).items() if PALLAS_FMA or k != "fma"}
     lane_options = dict(unroll=PALLAS_UNROLL, fast_math=PALLAS_FAST_MATH,
-                        unsupported=TRITON_UNSUPPORTED)
+                        unsupported=TRITON_UNSUPPORTED, bool_carries=True)
 
     # the values shared by all rays, computed here (the lane program evaluated once on
     # placeholder rays, whose work XLA then drops) and read by the kernel
@@ -326,6 +326,9 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
         offsets.append(k)
         k += int(np.prod(leaf.shape))
     parts = [jnp.ravel(x).astype(dtype) for x in leaves]
+    if centres is not None:  # the grid's offset in the image (exact as floats < 2^24)
+        parts.append(jnp.stack([jnp.asarray(c).astype(dtype) for c in centres]))
+        k += 2
     ubase = k
     if recorded is not None and recorded.values:
         parts += [_as_float32_word(v) for v in recorded.values]
@@ -343,11 +346,12 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
 
 
     def kernel(p_ref, *refs):
-        if centres:  # pixel centres of the grid, computed here: no sample array to read
+        if centres is not None:  # pixel centres, computed here: no sample array to read
             o_refs = refs
             i, j = pl.program_id(0), pl.program_id(1)
-            py = (i * th + lax.broadcasted_iota(jnp.int32, (th, tw), 0)).astype(dtype) + 0.5
-            px = (j * tw + lax.broadcasted_iota(jnp.int32, (th, tw), 1)).astype(dtype) + 0.5
+            row0, col0 = p_ref[ubase - 2], p_ref[ubase - 1]
+            py = (i * th + lax.broadcasted_iota(jnp.int32, (th, tw), 0)).astype(dtype) + (row0 + 0.5)
+            px = (j * tw + lax.broadcasted_iota(jnp.int32, (th, tw), 1)).astype(dtype) + (col0 + 0.5)
         else:
             s_ref, *o_refs = refs
             px, py = s_ref[0], s_ref[1]
@@ -367,15 +371,17 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
                           **lane_options)
         if recorded is not None:
             uniforms.check(recorded)
-        r = 0
         zero = px * 0  # outputs that are constants: lanes computed from a traced zero
-        for o in outs:
-            for x in o.reshape(-1):
-                dt = o_refs[r].dtype
+        for o, o_ref in zip(outs, o_refs):
+            for c, x in enumerate(o.reshape(-1)):
+                dt = o_ref.dtype
                 if isinstance(x, np.generic):
                     x = (zero + np.float32(x)).astype(dt)
-                o_refs[r][...] = jnp.broadcast_to(jnp.asarray(x).astype(dt), (th, tw))
-                r += 1
+                x = jnp.broadcast_to(jnp.asarray(x).astype(dt), (th, tw))
+                if o.shape == ():
+                    o_ref[...] = x
+                else:
+                    o_ref[:, :, c] = x
 
     kwargs = {}
     if not interpret:
@@ -383,13 +389,20 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
 
         warps = PALLAS_NUM_WARPS or max(1, min(4, (th * tw) // 64))
         kwargs["compiler_params"] = pltriton.CompilerParams(num_warps=warps, num_stages=1)
-    # one output array per output lane, in image layout: written once, no padding rows
-    out_shape = [jax.ShapeDtypeStruct((ty * th, tx * tw), o.dtype)
-                 for o in out_leaves for _ in range(int(np.prod(o.shape)))]
-    tile_spec = pl.BlockSpec((th, tw), lambda i, j: (i, j))
+    # one output array per output of the program, in image layout ([rows, columns] and
+    # its components last, as the caller wants them): written once, no padding rows
+    out_shape, out_specs = [], []
+    for o in out_leaves:
+        size = int(np.prod(o.shape))
+        if o.shape == ():
+            out_shape.append(jax.ShapeDtypeStruct((ty * th, tx * tw), o.dtype))
+            out_specs.append(pl.BlockSpec((th, tw), lambda i, j: (i, j)))
+        else:
+            out_shape.append(jax.ShapeDtypeStruct((ty * th, tx * tw, size), o.dtype))
+            out_specs.append(pl.BlockSpec((th, tw, size), lambda i, j: (i, j, 0)))
     in_specs = [pl.BlockSpec((nparams,), lambda i, j: (0,))]
     args = [pvec]
-    if not centres:
+    if centres is None:
         s = _to_tiles(samples, grid, (th, tw))  # [ty, tx, th, tw, 2]
         s = jnp.moveaxis(jnp.moveaxis(s, -1, 0), 2, 3).reshape(2, ty * th, tx * tw)
         in_specs.append(pl.BlockSpec((2, th, tw), lambda i, j: (0, i, j)))
@@ -399,18 +412,11 @@ def _pallas(one, dyn, samples, settings, grid, centres=False):
         out_shape=out_shape,
         grid=(ty, tx),
         in_specs=in_specs,
-        out_specs=[tile_spec] * lanes_out,
+        out_specs=out_specs,
         interpret=interpret,
         name="jaxrt_render",
         **kwargs,
     )
-    planes = [x[:rows, :cols].reshape(rows * cols) for x in call(*args)]
-    res, r = [], 0
-    for sh in out_leaves:
-        size = int(np.prod(sh.shape))
-        if sh.shape == ():
-            res.append(planes[r])
-        else:
-            res.append(jnp.stack(planes[r:r + size], axis=-1).reshape((rows * cols,) + sh.shape))
-        r += size
+    res = [x[:rows, :cols].reshape((rows * cols,) + sh.shape)
+           for x, sh in zip(call(*args), out_leaves)]
     return jax.tree_util.tree_unflatten(out_tree, res)

@@ -142,6 +142,7 @@ class _Ctx:
         self.fast_math = fast_math
         self.ptx = None
         self.uniforms = None
+        self.bool_carries = False
         self.anchor = None
         self.int_anchor = None
         self.scopes = [{}]
@@ -760,14 +761,15 @@ def _while(eqn, ins, ctx):
     init = [x for x, k in zip(init, keep) if k]
     avals = [v.aval for v, k in zip(eqn.outvars, keep) if k]
     block = ctx.block
-    # loop state: every lane of every carried value as a [block] array (bools as int32,
-    # which every backend carries through loops)
+    # loop state: every lane of every carried value as a [block] array (bools as int32
+    # unless ctx.bool_carries: a Triton kernel carries predicates, which saves a
+    # conversion each way per step)
     shapes = [a.shape for a in avals]
     dtypes = [a.dtype for a in avals]
     sizes = [int(np.prod(s)) for s in shapes]
 
     def store_dtype(dt):
-        return np.dtype(np.int32) if dt == np.dtype(bool) else dt
+        return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
 
     def pack(objs):
         flat = []
@@ -783,7 +785,7 @@ def _while(eqn, ins, ctx):
             ravel = obj.reshape(-1)
             for i in range(n):
                 x = flat[k + i]
-                ravel[i] = (x != 0) if dt == np.dtype(bool) else x
+                ravel[i] = (x != 0) if dt == np.dtype(bool) and x.dtype != np.dtype(bool) else x
             objs.append(obj)
             k += n
         return objs
@@ -1136,24 +1138,42 @@ class Uniforms:
     loops is computed and kept in `values`), then inside it with
     `Uniforms(read=k ↦ value)` (replaying: the k-th such operation reads the k-th value
     instead; loads that nothing uses are removed by the compiler, and with them the
-    work). `check` confirms that both runs met the same operations in the same order."""
+    work). An operation met again on the same operands (the same scalar chain in
+    several evaluations of an SDF) gives the value already made. `check` confirms that
+    both runs met the same operations in the same order."""
 
     def __init__(self, read=None):
         self.read = read
         self.values = []
         self.ops = []
+        self._labels = {}  # id of an operand -> the order in which it was first seen
+        self._alive = []  # ... kept alive, so that ids are not reused
+        self._made = {}
 
     #: the dtypes kept (as 32-bit words); operations on others run where they are
     DTYPES = (np.dtype(np.float32), np.dtype(np.int32), np.dtype(bool))
 
+    def _label(self, x):
+        if _is_const(x):
+            return ("const", x.dtype.str, x.tobytes())
+        if id(x) not in self._labels:
+            self._labels[id(x)] = len(self._labels)
+            self._alive.append(x)
+        return self._labels[id(x)]
+
     def __call__(self, prim, lanes, params, dtype):
         if np.dtype(dtype) not in self.DTYPES:
             return None
+        key = (prim.name, str(sorted(params.items())), tuple(self._label(x) for x in lanes))
+        if key in self._made:
+            return self._made[key]
         self.ops.append((prim.name, np.dtype(dtype).str))
         if self.read is not None:
-            return self.read(len(self.ops) - 1, dtype)
-        out = prim.bind(*[jnp.asarray(x) for x in lanes], **params)
-        self.values.append(out)
+            out = self.read(len(self.ops) - 1, dtype)
+        else:
+            out = prim.bind(*[jnp.asarray(x) for x in lanes], **params)
+            self.values.append(out)
+        self._made[key] = out
         return out
 
     def check(self, recorded):
@@ -1163,7 +1183,8 @@ class Uniforms:
 
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
-               fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None):
+               fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None,
+               bool_carries=False):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -1185,6 +1206,7 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
         fused multiply-add (a product used once by an add or sub is fused into it) and,
         with fast_math, its approximate sqrt/rsqrt/division (`_fast_math`).
       uniforms: a `Uniforms`, recording or replaying the values shared by all rays.
+      bool_carries: loops carry boolean lanes as booleans (else as int32).
 
     Returns: one object array of lanes per output of the program.
     """
@@ -1193,6 +1215,7 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     ctx.int_anchor = int_anchor
     ctx.ptx = ptx
     ctx.uniforms = uniforms
+    ctx.bool_carries = bool_carries
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
