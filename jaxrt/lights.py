@@ -97,7 +97,7 @@ def _soft_shadow(sdf, origin, wi, t_max, settings):
     def body(s):
         t, vis, i = s
         d = sign * sdf(origin + t * wi) * inv_lipschitz
-        h = jnp.clip(safe_div(k * d, t, 1.0), 0.0, 1.0)
+        h = jnp.clip(k * d / t, 0.0, 1.0)  # t ≥ eps > 0: starts at eps, steps ≥ eps
         vis = jnp.minimum(vis, h * h * (3.0 - 2.0 * h))
         vis = jnp.where(d < eps, 0.0, vis)
         return t + jnp.clip(d, eps, max_step), vis, i + 1

@@ -64,6 +64,72 @@ def test_lanes_match_vmap():
         np.testing.assert_allclose(g, np.asarray(w), rtol=1e-12, atol=1e-12)
 
 
+def test_fused_multiply_adds_and_shared_values_keep_the_function():
+    """The Pallas kernel's lane forms: products used once by an add, sub or sum become
+    fused multiply-adds (here counted, in their plain form), and scalar chains of the
+    parameters alone are recorded once outside the kernel and replayed as reads, an
+    operation met twice on the same operands read once (lanes.Uniforms)."""
+    from jaxrt.kernels.lanes import Uniforms
+
+    rng = np.random.default_rng(2)
+    params = jnp.asarray(rng.normal(size=13), jnp.float32)
+    a = jnp.asarray(rng.uniform(-1.5, 1.5, 64), jnp.float32)
+    b = jnp.asarray(rng.normal(size=64), jnp.float32)
+
+    def shared_twice(p, a, b):  # the same normalisation of parameters, twice
+        n1 = p[:3] / jnp.linalg.norm(p[:3])
+        n2 = p[:3] / jnp.linalg.norm(p[:3])
+        v = jnp.stack([a, b, a * b])
+        w = p[4:13].reshape(3, 3) @ v  # sums of products (dot_general)
+
+        def body(s):
+            k, x = s
+            return k + 1, x * 0.9 - 0.05 * a  # x·0.9 − 0.05·a: fused, in a loop
+        _, x = jax.lax.while_loop(lambda s: (s[0] < 5) & (s[1] > -1.0), body, (0, b))
+        return (jnp.sum(w * v) + jnp.dot(n1, jnp.stack([a, b, a - b])) - n2[0] * b
+                + p[3] - a * x)
+
+    want = jax.vmap(shared_twice, (None, 0, 0))(params, a, b)
+    closed = jax.make_jaxpr(shared_twice)(params, a[0], b[0])
+    calls = []
+    ptx = {"fma": lambda x, y, z: calls.append(1) or x * y + z, "neg": jnp.negative}
+    seen = {}
+
+    def record_and_replay(p):  # the parameters traced, as in a kernel
+        lanes = [lanes_of(p), _lane(a), _lane(b)]
+        recorded = Uniforms()
+        eval_lanes(closed, lanes, 64, ptx=ptx, uniforms=recorded)
+        replay = Uniforms(read=lambda k, dtype: recorded.values[k])
+        (out,) = eval_lanes(closed, lanes, 64, ptx=ptx, uniforms=replay)
+        replay.check(recorded)
+        seen["ops"] = recorded.ops
+        return stack_lanes(out, 64, jnp.float32)
+
+    got = jax.jit(record_and_replay)(params)
+    ops = [name for name, _ in seen["ops"]]
+    assert ops.count("sqrt") == 1 and ops.count("div") == 3, ops  # one norm, not two
+    assert calls, "no product was fused"
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=2e-5, atol=2e-5)
+
+
+def test_pallas_kernel_lowers_for_cuda_with_ptx_forms(small_scene, monkeypatch):
+    """Without a GPU, the Triton lowering of a render (not its compilation) still runs:
+    the kernel with fused multiply-adds and PTX fast math lowers for CUDA."""
+    from jaxrt.kernels import fused
+    import equinox as eqx
+    from jaxrt.render import _cast, _render
+
+    monkeypatch.setattr(fused, "INTERPRET", False)
+    scene, camera, _ = small_scene
+    settings = jr.RenderSettings(backend="pallas", shadows="soft", batch_size=32, aovs=())
+    dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
+    f = jax.jit(lambda d: _render.__wrapped__(*eqx.combine(d, static), settings))
+    text = f.trace(dyn).lower(lowering_platforms=("cuda",)).as_text()
+    assert "jaxrt_render" in text
+    for instruction in ("fma.rn.f32", "sqrt.approx.ftz.f32", "neg.f32"):
+        assert instruction in text, instruction
+
+
 def test_lanes_reject_unsupported_primitives():
     def fn(params, a):
         return jnp.sort(jnp.stack([a, params, -a]))

@@ -170,7 +170,7 @@ BAD_SETTINGS = [
     ("over_relaxation", 2.0), ("over_relaxation", 0.9), ("newton_steps", -1),
     ("normal_mode", "sobel"), ("normal_epsilon", 0.0), ("shadows", "fuzzy"), ("shadow_steps", 0),
     ("penumbra", -8.0), ("shadow_max_distance", 0.0), ("max_depth", -1), ("max_depth", 17),
-    ("ray_offset", 0.0), ("spp", 0), ("seed", 0.5), ("wavelengths", -1), ("dtype", "float16"),
+    ("ray_offset", 0.0), ("spawn_steps", -1), ("spawn_steps", 1.5), ("spp", 0), ("seed", 0.5), ("wavelengths", -1), ("dtype", "float16"),
     ("batch_size", 0), ("silhouette", 1), ("aovs", ("rgb",)), ("aovs", ("depth", "depth")),
     ("aovs", "depth"),
 ]
