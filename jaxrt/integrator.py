@@ -102,9 +102,9 @@ def spawn_origin(scene, which, p, n, offset, side, steps=2):
     they push the origin out of that face's ε band too, where the ray would otherwise
     re-hit it at t = 0 (one step per face that can be nearer than the offset: two settle
     the edges and corners of boxes, a third face is then already ≥ offset away). The
-    correction carries no gradient (the origin's gradient is
-    that of p). p, n, offset and side may carry a leading batch axis (several origins
-    from one hit share one compiled step).
+    correction carries no gradient (the origin's gradient is that of p). p, n, offset
+    and side may carry a leading batch axis (several origins from one hit share one
+    compiled step).
     """
     if p.ndim > 1:
         return jax.vmap(lambda *a: spawn_origin(scene, which, *a, steps=steps))(p, n, offset, side)

@@ -208,7 +208,7 @@ def _fast_math(name, lanes, ctx, dtype):
     """Cheaper float32 forms for a GPU kernel (within a few ulps of the exact ones).
 
     With `ctx.ptx` (a Triton kernel: {name: function of [block] lanes}, see
-    `fused.PTX`): per-ray sqrt, rsqrt and division as the approximate PTX instructions
+    `fused._ptx_ops`): per-ray sqrt, rsqrt and division as the approximate PTX instructions
     `sqrt.approx.ftz`, `rsqrt.approx.ftz`, `div.approx.ftz` (one special-function
     instruction, or a reciprocal and a multiply, instead of a range-checked sequence),
     exp, log and pow through `ex2.approx`/`lg2.approx` (x^y = 2^(y·log2 x): NaN for
@@ -229,9 +229,7 @@ def _fast_math(name, lanes, ctx, dtype):
             return None
         if ptx is not None:
             return ptx[name](x)
-        if name in ("exp", "log"):
-            return None
-        if name == "rsqrt":
+        if name != "sqrt":
             return None
         ok = x > 0.0
         return jnp.where(ok, x * lax.rsqrt(jnp.where(ok, x, 1.0)), jnp.zeros_like(x))
@@ -1202,9 +1200,10 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
       unsupported: primitive names the target cannot compile (raise `Unsupported`).
       int_anchor: a traced integer scalar (a Pallas program id) from which constant
         lanes are built (`_const_lane`), so that they fold to splats.
-      ptx: {"fma", "sqrt", "rsqrt", "div": function of [block] lanes}: the target's
-        fused multiply-add (a product used once by an add or sub is fused into it) and,
-        with fast_math, its approximate sqrt/rsqrt/division (`_fast_math`).
+      ptx: {name: function of [block] lanes} for "fma", "neg" and, with fast_math,
+        "sqrt", "rsqrt", "div", "exp", "log", "pow": the target's fused multiply-add (a
+        product used once by an add, a sub or a sum is fused into it), negation and
+        approximate functions (`_fast_math`).
       uniforms: a `Uniforms`, recording or replaying the values shared by all rays.
       bool_carries: loops carry boolean lanes as booleans (else as int32).
 
