@@ -1,6 +1,8 @@
 """jaxrt.kernels: the lane-wise (fused, Pallas) evaluation computes the same function as
 vmap, and the fused render backends give the same images and gradients as "jax"."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -230,6 +232,36 @@ def test_auto_backend_falls_back_where_lanes_cannot_run():
     with pytest.raises(Unsupported):
         map_samples(fn, jnp.float64(2.0), samples, jr.RenderSettings(backend="fused"), reference)
     assert resolve_backend("auto") == ("pallas" if jax.default_backend() == "gpu" else "fused")
+
+
+def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly(monkeypatch):
+    """backend="auto" renders a program of more lane operations than AUTO_MAX_LANE_OPS
+    (a batch of rays counts once per ray, as lanes unroll it) with the vmapped path."""
+    from jaxrt.kernels import fused
+    from jaxrt.kernels.lanes import program_size
+
+    def fn(params, px, py):
+        v = jnp.stack([px, py, params]) * jnp.ones((4, 3))  # 12 lanes per operation
+        return {"v": jnp.sum(jnp.sin(v) * v, axis=0)}
+
+    closed = jax.make_jaxpr(fn)(jnp.float64(2.0), 0.0, 0.0)
+    size = program_size(closed.jaxpr)
+    assert size > 3 * 12, size
+    samples = jnp.asarray(np.random.default_rng(1).uniform(0, 4, (8, 2)))
+
+    def reference(params, s):
+        return jax.vmap(lambda q: fn(params, q[0], q[1]))(s)
+
+    settings = jr.RenderSettings(backend="auto")
+    monkeypatch.setattr(fused, "AUTO_MAX_LANE_OPS", 3 * 12)
+    with pytest.warns(UserWarning, match="lane operations"):
+        out = map_samples(fn, jnp.float64(2.0), samples, settings, reference)
+    np.testing.assert_allclose(out["v"], reference(jnp.float64(2.0), samples)["v"])
+    monkeypatch.setattr(fused, "AUTO_MAX_LANE_OPS", 10 * size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # under the limit: the fused path, no warning
+        out = map_samples(fn, jnp.float64(2.0), samples, settings, reference)
+    np.testing.assert_allclose(out["v"], reference(jnp.float64(2.0), samples)["v"])
 
 
 def test_store_is_exact_and_a_fusion_boundary_on_cpu():

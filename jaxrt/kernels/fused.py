@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from .lanes import Uniforms, Unsupported, eval_lanes, lanes_of, stack_lanes
+from .lanes import Uniforms, Unsupported, eval_lanes, lanes_of, program_size, stack_lanes
 
 __all__ = ["map_samples", "resolve_backend", "Unsupported", "pallas_block", "tile_shape"]
 
@@ -69,6 +69,14 @@ PALLAS_UNIFORMS = True
 #: as a multiplication. On the Warp scene it moved a few pixels by up to 3.4e-3 (0.000%
 #: of them by more than 1e-3) and rendered in 0.304 ms instead of 0.332 ms (an H200).
 PALLAS_FAST_MATH = True
+
+#: "auto" renders one-ray programs of more lane operations than this (`lanes.program_size`:
+#: elementwise operations, times the rays of the batched levels of a ray tree, which
+#: lanes unroll) with "jax": the fused kernels' compile time grows with it. The Warp
+#: scene has 3.1k (Pallas compiles it in 3 s on an H200), the showcase 38k (fused:
+#: 56 s on 2 CPU cores), the glass scene 40k at max_depth 2 and 671k at its file's 6
+#: (Pallas: over 9 minutes, stopped; "jax": 30 s on the CPU).
+AUTO_MAX_LANE_OPS = 60_000
 
 #: Elementwise primitives that Pallas' Triton lowering lacks (jax 0.10/0.11): a program
 #: using them (a Beckmann distribution's erfc, say) is Unsupported for "pallas", and
@@ -125,13 +133,20 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
 
     run.defvjp(run_fwd, run_bwd)
     if settings.backend == "auto":
-        # "auto" falls back to the vmapped program for what lanes cannot run. The test
-        # traces the lane program abstractly, apart from the caller's trace (an exception
-        # in the middle of that trace would leave constants behind in it).
+        # "auto" falls back to the vmapped program for what lanes cannot run, or would
+        # take long to compile. The test traces the lane program abstractly, apart from
+        # the caller's trace (an exception in the middle of that trace would leave
+        # constants behind in it).
         def abstract(x):
             return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
         try:
+            size = program_size(_trace_one(one, dyn, samples.dtype)[0].jaxpr)
+            if size > AUTO_MAX_LANE_OPS:
+                raise Unsupported(
+                    f"the one-ray program has {size} lane operations (more than "
+                    f"jaxrt.kernels.fused.AUTO_MAX_LANE_OPS = {AUTO_MAX_LANE_OPS}: a deep ray "
+                    "tree), whose fused kernel would compile for minutes")
             jax.eval_shape(lambda d, s: run(d, s), jax.tree_util.tree_map(abstract, dyn),
                            abstract(samples))
         except Unsupported as e:

@@ -40,7 +40,7 @@ import numpy as np
 from jax import lax
 from jax.extend import core as jcore
 
-__all__ = ["eval_lanes", "lanes_of", "stack_lanes", "Uniforms", "Unsupported"]
+__all__ = ["eval_lanes", "lanes_of", "program_size", "stack_lanes", "Uniforms", "Unsupported"]
 
 
 class Unsupported(NotImplementedError):
@@ -1124,6 +1124,23 @@ def _fma(eqn, ins, k, ctx):
             a = _neg(a, ctx)
         out[idx] = _fma_lane(a, b, c, dtype, ctx)
     return out
+
+
+def program_size(jaxpr):
+    """Lane operations of a one-ray program: its equations (those of loop bodies and
+    calls once), each counted once per element of its result, as `eval_lanes`
+    scalarises them (a batch of 2^k rays in a ray tree: 2^k lanes per operation)."""
+    total = 0
+    for eqn in jaxpr.eqns:
+        shape = getattr(eqn.outvars[0].aval, "shape", ()) if eqn.outvars else ()
+        total += max(1, int(np.prod(shape)))
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (list, tuple)) else [p]:
+                if isinstance(sub, jcore.ClosedJaxpr):
+                    total += program_size(sub.jaxpr)
+                elif isinstance(sub, jcore.Jaxpr):
+                    total += program_size(sub)
+    return total
 
 
 class Uniforms:
