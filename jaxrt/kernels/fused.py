@@ -72,15 +72,17 @@ PALLAS_FAST_MATH = True
 
 #: "auto" renders one-ray programs of more lane operations than this (`lanes.program_size`:
 #: elementwise operations, times the rays of the batched levels of a ray tree, which
-#: lanes unroll) with "jax": the fused kernels' compile time grows with it. The Warp
-#: scene has 3.1k (Pallas compiles it in 3 s on an H200), the showcase 38k (fused:
-#: 56 s on 2 CPU cores), the glass scene 40k at max_depth 2 and 671k at its file's 6
-#: (Pallas: over 9 minutes, stopped; "jax": 30 s on the CPU).
-AUTO_MAX_LANE_OPS = 60_000
+#: lanes unroll) with "jax", per fused backend: their compile time grows with it, Triton's
+#: faster than linearly. The Warp scene has 3.1k lane operations (Pallas compiles it in
+#: 3 s on an H200), the showcase 38k (Pallas: 304 s; "fused": 56 s on 2 CPU cores), the
+#: glass scene 40k at max_depth 2, 168k at 4 ("fused": 138 s; "jax": 20 s) and 671k at
+#: its file's 6 (Pallas: over 9 minutes, stopped).
+AUTO_MAX_LANE_OPS = {"pallas": 10_000, "fused": 60_000}
 
-#: Elementwise primitives that Pallas' Triton lowering lacks (jax 0.10/0.11): a program
-#: using them (a Beckmann distribution's erfc, say) is Unsupported for "pallas", and
-#: "auto" renders it with the "jax" program.
+#: Elementwise primitives that Pallas' Triton lowering lacks (jax 0.10/0.11). erfc (a
+#: Beckmann distribution's Smith term) is computed from a Chebyshev fit instead
+#: (`lanes._erfc`, fractional error < 1.2e-7); a program using the others is Unsupported
+#: for "pallas", and "auto" renders it with the "jax" program.
 TRITON_UNSUPPORTED = ("erf", "erfc", "lgamma", "digamma", "bessel_i0e", "bessel_i1e")
 
 #: Rays per Pallas program instance when batch_size does not say otherwise: a 4×8 tile
@@ -142,11 +144,12 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
 
         try:
             size = program_size(_trace_one(one, dyn, samples.dtype)[0].jaxpr)
-            if size > AUTO_MAX_LANE_OPS:
+            if size > AUTO_MAX_LANE_OPS[backend]:
                 raise Unsupported(
                     f"the one-ray program has {size} lane operations (more than "
-                    f"jaxrt.kernels.fused.AUTO_MAX_LANE_OPS = {AUTO_MAX_LANE_OPS}: a deep ray "
-                    "tree), whose fused kernel would compile for minutes")
+                    f"jaxrt.kernels.fused.AUTO_MAX_LANE_OPS[{backend!r}] = "
+                    f"{AUTO_MAX_LANE_OPS[backend]}: a large scene or a deep ray tree), whose "
+                    f"{backend} kernel would compile for minutes")
             jax.eval_shape(lambda d, s: run(d, s), jax.tree_util.tree_map(abstract, dyn),
                            abstract(samples))
         except Unsupported as e:
