@@ -191,9 +191,8 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
         fast = _fast_math(prim.name, lanes, ctx, out_dtype)
         if fast is not None:
             return fast
-    if prim.name == "neg" and ctx.ptx and "neg" in ctx.ptx and out_dtype == np.float32 \
-            and shape == ctx.block:
-        return ctx.ptx["neg"](lanes[0])
+    if prim.name == "neg" and ctx.ptx and out_dtype == np.float32:
+        return _neg(lanes[0], ctx)
     ops = []
     for x in lanes:
         if _is_const(x):
@@ -1016,7 +1015,7 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
             live.update(v for v in eqn.invars if not isinstance(v, jcore.Literal))
         used_eqns.append(used)
     used_eqns.reverse()
-    products, fused = _fma_plan(jaxpr) if ctx.ptx and "fma" in ctx.ptx else ({}, {})
+    products, fused = _fma_plan(jaxpr) if ctx.ptx and "fma" in ctx.ptx else (set(), {})
     for eqn, used in zip(jaxpr.eqns, used_eqns):
         if not (any(used) or eqn.effects):
             continue
@@ -1083,9 +1082,9 @@ def _fma_plan(jaxpr):
     uses = collections.Counter(v for e in jaxpr.eqns for v in e.invars
                                if not isinstance(v, jcore.Literal))
     uses.update(v for v in jaxpr.outvars if not isinstance(v, jcore.Literal))
-    muls = {e.outvars[0]: e for e in jaxpr.eqns
+    muls = {e.outvars[0] for e in jaxpr.eqns
             if e.primitive.name == "mul" and e.outvars[0].aval.dtype == np.float32}
-    products, fused = {}, {}
+    products, fused = set(), {}
     for e in jaxpr.eqns:
         if e.primitive.name not in ("add", "add_any", "sub", "reduce_sum"):
             continue
@@ -1093,7 +1092,7 @@ def _fma_plan(jaxpr):
             if (not isinstance(v, jcore.Literal) and v in muls and uses[v] == 1
                     and v not in products and (e.primitive.name == "reduce_sum"
                                                or v.aval.shape == e.outvars[0].aval.shape)):
-                products[v] = muls[v]
+                products.add(v)
                 fused[id(e)] = k
                 break
     return products, fused
