@@ -5,8 +5,9 @@ t ← t + f(o + t d) / L from t = 0 until f < ε (hit), t > max_distance (miss) 
 budget runs out (exhausted). L is the scene's Lipschitz factor (1 for distance bounds).
 A ray that starts inside a surface (f(o) < 0) marches on |f| and finds where it leaves.
 
-The loop is a bounded `lax.while_loop` (vmapped it runs until every ray of the batch is
-done) and is not differentiated. The hit distance gets its gradient from the implicit
+The loop (`jaxrt.march.sphere`, called through the tape of `jaxrt.march.tape`, so that a
+render can record it in a fast kernel and replay it) is a bounded `lax.while_loop`
+(vmapped it runs until every ray of the batch is done) and is not differentiated. The hit distance gets its gradient from the implicit
 function theorem at the root of g(t; θ) = f(o + t d; θ): one Newton step from the
 marched t̂ (held constant),
 

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from ..trace import sphere_trace
 from ..vecmath import dot, normalize, safe_div, stop_gradient
+from .search import repeat as _repeat
 from .sphere import SphereTracing
 
 #: Golden-section evaluations that refine the marched near miss: the bracket shrinks
@@ -33,16 +34,6 @@ PROJECT_STEPS = 8
 ILLINOIS_STEPS = 24
 
 _INV_PHI = 0.6180339887498949
-
-
-def _repeat(n, body, init):
-    """`body(i, state)` n times: a while loop with a static bound (a fori_loop would
-    lower to `scan`, which the lane-wise kernels of `jaxrt.kernels` do not run)."""
-    def step(s):
-        i, state = s
-        return i + 1, body(i, state)
-
-    return jax.lax.while_loop(lambda s: s[0] < n, step, (jnp.zeros((), jnp.int32), init))[1]
 
 
 def refine_closest(sdf, origin, direction, cone, hit):
