@@ -4,12 +4,14 @@ This module re-exports the public API; reading it is reading the API index.
 """
 
 from . import bsdf as bsdf, config as config, heightfield as heightfield, io as io, sdf as sdf, spectral as spectral
+from . import fit as fit, views as views
 from .heightfield import HeightField as HeightField
 from .camera import OrthographicCamera as OrthographicCamera, PerspectiveCamera as PerspectiveCamera
 from .lights import DirectionalLight as DirectionalLight, PointLight as PointLight
 from .render import Image as Image, render as render
 from .scene import Scene as Scene
 from .settings import RenderSettings as RenderSettings
+from .views import orbit as orbit, render_views as render_views, stack_cameras as stack_cameras
 from .trace import (
     Hit as Hit,
     intersect_plane as intersect_plane,

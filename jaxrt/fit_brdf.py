@@ -21,9 +21,10 @@ table always reports the uncompressed E as well.
 Parameterisation: every model parameter is a transform of an unconstrained value, so
 that any optimiser step gives a valid model: reflectances ≥ 0 through softplus,
 roughness and exponents > 0 through exp, Fresnel reflectances in (0, 1) through the
-logistic function (`Parameter.transform`). Gradients are JAX's; the solvers are
-optimistix's Levenberg–Marquardt (`optx.least_squares`) or BFGS (`optx.minimise`), run
-from several starting roughnesses, keeping the best.
+logistic function (`Parameter.transform`, the transforms of `jaxrt.fit`). Gradients
+are JAX's; the driver is `jaxrt.fit` (optimistix's Levenberg–Marquardt or BFGS), run
+from several starting roughnesses, keeping the best; the result is a
+`jaxrt.fit.FitResult`.
 """
 
 from __future__ import annotations
@@ -33,15 +34,14 @@ import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from . import bsdf
+from . import bsdf, fit as _fit
 from .bsdf.base import Material
-from .io import MERL_SHAPE, merl_angles
+from .io import MERL_SHAPE, half_diff_angles, merl_angles, merl_indices
 
 #: Fresnel f0 and Ashikhmin–Shirley rs start here (a dielectric of index ≈ 1.5).
 F0_START = 0.04
@@ -179,20 +179,9 @@ def tabulate_merl(material, chunk=1 << 16):
 
 
 def half_diff(wo, wi):
-    """Rusinkiewicz (θh, θd, φd) of one direction pair, in JAX (as
-    `jaxrt.io.half_diff_angles`, φd in (−π, π]); arctan2 forms, so finite everywhere."""
-    wh = wo + wi
-    wh = wh / jnp.sqrt(jnp.maximum(jnp.sum(wh * wh), 1e-30))
-    sin_h = jnp.sqrt(wh[0] ** 2 + wh[1] ** 2)
-    theta_h = jnp.arctan2(sin_h, wh[2])
-    phi_h = jnp.arctan2(wh[1], wh[0])
-    c, s = jnp.cos(phi_h), jnp.sin(phi_h)
-    x = c * wi[0] + s * wi[1]
-    y = -s * wi[0] + c * wi[1]
-    ct, st = jnp.cos(theta_h), jnp.sin(theta_h)
-    x, z = ct * x - st * wi[2], st * x + ct * wi[2]
-    theta_d = jnp.arctan2(jnp.sqrt(x * x + y * y), z)
-    return theta_h, theta_d, jnp.arctan2(y, x)
+    """Rusinkiewicz (θh, θd, φd) of direction pairs, in JAX: `jaxrt.io.half_diff_angles`
+    with `xp=jax.numpy` (φd in (−π, π])."""
+    return half_diff_angles(wo, wi, xp=jnp)
 
 
 class TabulatedBRDF(Material):
@@ -218,12 +207,7 @@ class TabulatedBRDF(Material):
         self.table = table
 
     def eval(self, wo, wi):
-        theta_h, theta_d, phi_d = half_diff(wo, wi)
-        n_h, n_d, n_p = MERL_SHAPE
-        i = jnp.floor(jnp.sqrt(jnp.maximum(theta_h, 0.0) / (jnp.pi / 2)) * n_h)
-        j = jnp.floor(theta_d / (jnp.pi / 2) * n_d)
-        k = jnp.floor(jnp.mod(phi_d, jnp.pi) / jnp.pi * n_p)
-        i, j, k = (jnp.clip(a, 0, n - 1).astype(jnp.int32) for a, n in zip((i, j, k), MERL_SHAPE))
+        i, j, k = merl_indices(wo, wi, xp=jnp)
         f = jnp.maximum(self.table[i, j, k], 0.0)
         return jnp.where((wo[2] > 0.0) & (wi[2] > 0.0), f, 0.0)
 
@@ -255,12 +239,9 @@ class SumBRDF(Material):
 # --------------------------------------------------------------------------- models
 
 
-_TRANSFORMS = {
-    "softplus": (jax.nn.softplus, lambda x: x + jnp.log(-jnp.expm1(-x))),
-    "exp": (jnp.exp, jnp.log),
-    "sigmoid": (jax.nn.sigmoid, lambda x: jnp.log(x) - jnp.log1p(-x)),
-    "identity": (lambda u: u, lambda x: x),
-}
+#: The parameter transforms by name (`jaxrt.fit.Transform`).
+TRANSFORMS = {"softplus": _fit.POSITIVE, "exp": _fit.LOG, "sigmoid": _fit.UNIT,
+              "identity": _fit.IDENTITY}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -291,21 +272,20 @@ class ModelSpec:
     start: Callable
     scale: tuple = ()
 
+    @property
+    def transforms(self):
+        """name → `jaxrt.fit.Transform` of every parameter."""
+        return {k: TRANSFORMS[p.transform] for k, p in self.params.items()}
+
     def to_values(self, raw):
         """Unconstrained → constrained parameter values."""
-        return {k: _TRANSFORMS[p.transform][0](raw[k]) for k, p in self.params.items()}
+        return _fit.constrain({k: raw[k] for k in self.params}, self.transforms)
 
     def to_raw(self, values):
         """Constrained → unconstrained parameter values (clipped into the open range)."""
-        raw = {}
-        for k, p in self.params.items():
-            x = jnp.broadcast_to(jnp.asarray(values[k], dtype=float), p.shape)
-            if p.transform in ("softplus", "exp"):
-                x = jnp.maximum(x, 1e-6)
-            elif p.transform == "sigmoid":
-                x = jnp.clip(x, 1e-6, 1.0 - 1e-6)
-            raw[k] = _TRANSFORMS[p.transform][1](x)
-        return raw
+        values = {k: jnp.broadcast_to(jnp.asarray(values[k], dtype=float), p.shape)
+                  for k, p in self.params.items()}
+        return _fit.unconstrain(values, self.transforms)
 
 
 def alpha_to_exponent(alpha):
@@ -450,27 +430,6 @@ def ngan_error(material, data):
     return jnp.sqrt(jnp.sum(r * r))
 
 
-class FitResult(NamedTuple):
-    """The best of a model's fits.
-
-    material   the fitted `jaxrt.bsdf` material.
-    values     fitted parameter values (constrained), name → array.
-    objective  Σ r² at the fit (in the compressed space).
-    error      `ngan_error` on the fitting samples.
-    steps      solver steps of the best start.
-    converged  whether the best start's solver reported success.
-    objectives Σ r² of every start (to judge local minima).
-    """
-
-    material: Material
-    values: dict
-    objective: float
-    error: float
-    steps: int
-    converged: bool
-    objectives: np.ndarray
-
-
 def starts(spec, data, alphas):
     """Constrained starting values, one per roughness in `alphas`, stacked along a new
     leading axis. The diffuse start is π × the 10th percentile of the data per channel;
@@ -500,49 +459,55 @@ def starts(spec, data, alphas):
 def fit(spec, data, *, compression="none", solver="levenberg_marquardt", alphas=(0.05, 0.15, 0.4),
         max_steps=200, rtol=1e-7, atol=1e-10):
     """Fit `spec`'s parameters to `data` by weighted least squares (module docstring),
-    from one start per roughness in `alphas`; returns the best as a `FitResult`.
+    from one start per roughness in `alphas`, with `jaxrt.fit`'s drivers and the
+    parameters' transforms (`ModelSpec.transforms`); returns the best start's
+    `jaxrt.fit.FitResult`:
 
-    `solver`: "levenberg_marquardt" (`optx.least_squares` with
+    params   fitted parameter values (constrained), name → array.
+    loss     Σ r² at the fit (in the compressed space).
+    steps, result, converged   those of the best start's solver.
+    info     "material" (the fitted `jaxrt.bsdf` material), "error" (`ngan_error` on
+             the fitting samples) and "objectives" (Σ r² of every start, to judge
+             local minima).
+
+    `solver`: "levenberg_marquardt" (`jaxrt.fit.fit_least_squares` with
     `optx.LevenbergMarquardt(rtol, atol)` on the residual vector) or "bfgs"
-    (`optx.minimise` with `optx.BFGS(rtol, atol)` on Σ r²). Both stop after `max_steps`
-    without raising (`throw=False`); `converged` says whether they met the tolerance.
+    (`jaxrt.fit.fit` with `optx.BFGS(rtol, atol)` on Σ r²). Both stop after `max_steps`
+    without raising; `converged` says whether they met the tolerance. The compiled
+    solve is shared by every start and dataset of one model, options and shapes.
     """
     if compression not in COMPRESSIONS:
         raise ValueError(f"`compression` = {compression!r}, expected one of {COMPRESSIONS}")
     if solver not in SOLVERS:
         raise ValueError(f"`solver` = {solver!r}, expected one of {SOLVERS}")
-    solve = _solver(spec, compression, solver, max_steps, rtol, atol)
     x0 = starts(spec, data, alphas)
-    results = [solve(spec.to_raw(jax.tree_util.tree_map(lambda x: x[i], x0)), data)
-               for i in range(len(alphas))]
-    losses = np.array([float(r[1]) for r in results])
-    best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
-    raw, _, steps, ok = results[best]
-    values = spec.to_values(raw)
-    material = spec.build(values)
-    return FitResult(material, values, float(losses[best]), float(ngan_error(material, data)),
-                     int(steps), bool(ok), losses)
+    results = []
+    for i in range(len(alphas)):
+        start = {k: x0[k][i] for k in spec.params}
+        if solver == "levenberg_marquardt":
+            res = _fit.fit_least_squares(_residual_fn(spec, compression), start,
+                                         optx.LevenbergMarquardt(rtol=rtol, atol=atol), args=data,
+                                         max_steps=max_steps, transforms=spec.transforms)
+        else:
+            res = _fit.fit(_objective_fn(spec, compression), start, optx.BFGS(rtol=rtol, atol=atol),
+                           args=data, max_steps=max_steps, transforms=spec.transforms)
+        r = _residual_fn(spec, compression)(res.params, data)
+        results.append(res._replace(loss=float(jnp.sum(r * r))))
+    losses = np.array([r.loss for r in results])
+    best = results[int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))]
+    material = spec.build(best.params)
+    return best._replace(info={"material": material, "error": float(ngan_error(material, data)),
+                               "objectives": losses})
 
 
 @functools.lru_cache(maxsize=64)
-def _solver(spec, compression, solver, max_steps, rtol, atol):
-    """The compiled solve of one start, `(raw0, data) -> (raw, Σ r², steps, success)`,
-    cached per model and options so that every start and dataset of the same shapes
-    reuses it. (One start at a time: vmapping the starts compiles slower and runs each
-    batch as long as its slowest start.)"""
+def _residual_fn(spec, compression):
+    """values, data ↦ residuals, one function object per model and compression, so that
+    `jaxrt.fit`'s compiled solve is reused across starts and datasets."""
+    return lambda values, data: residuals(spec.build(values), data, compression)
 
-    def fn(raw, data):
-        return residuals(spec.build(spec.to_values(raw)), data, compression)
 
-    @eqx.filter_jit
-    def solve(raw, data):
-        if solver == "levenberg_marquardt":
-            sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), raw, data,
-                                     max_steps=max_steps, throw=False)
-        else:
-            sol = optx.minimise(lambda y, a: jnp.sum(fn(y, a) ** 2), optx.BFGS(rtol=rtol, atol=atol),
-                                raw, data, max_steps=max_steps, throw=False)
-        loss = jnp.sum(fn(sol.value, data) ** 2)
-        return sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
-
-    return solve
+@functools.lru_cache(maxsize=64)
+def _objective_fn(spec, compression):
+    fn = _residual_fn(spec, compression)
+    return lambda values, data: jnp.sum(fn(values, data) ** 2)

@@ -322,42 +322,48 @@ def merl_angles() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return tuple(np.broadcast_arrays(*np.ix_(theta_h, theta_d, phi_d)))
 
 
-def _normalize(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+def _normalize(v, xp=np):
+    # The floor keeps wo = −wi (a pair below the horizon) finite.
+    return v / xp.maximum(xp.linalg.norm(v, axis=-1, keepdims=True), 1e-30)
 
 
-def half_diff_angles(wo, wi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def half_diff_angles(wo, wi, xp=np) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rusinkiewicz (1998) coordinates (theta_h, theta_d, phi_d) of [..., 3] local-frame
     directions (normal +z, both pointing away from the surface).
 
     wh = normalize(wo + wi); wd is wi rotated by -phi_h about z, then by -theta_h about y
     (so wh goes to +z); theta_d, phi_d are wd's polar angles, phi_d in (-pi, pi].
+    `xp`: the array module, numpy (float64, default) or jax.numpy (traceable; used by
+    `jaxrt.fit_brdf.TabulatedBRDF`).
     """
-    wo, wi = _normalize(np.asarray(wo, np.float64)), _normalize(np.asarray(wi, np.float64))
-    wh = _normalize(wo + wi)
-    theta_h = np.arccos(np.clip(wh[..., 2], -1.0, 1.0))
-    phi_h = np.arctan2(wh[..., 1], wh[..., 0])
-    c, s = np.cos(phi_h), np.sin(phi_h)
+    dtype = np.float64 if xp is np else float
+    wo, wi = _normalize(xp.asarray(wo, dtype), xp), _normalize(xp.asarray(wi, dtype), xp)
+    wh = _normalize(wo + wi, xp)
+    theta_h = xp.arccos(xp.clip(wh[..., 2], -1.0, 1.0))
+    phi_h = xp.arctan2(wh[..., 1], wh[..., 0])
+    c, s = xp.cos(phi_h), xp.sin(phi_h)
     x = c * wi[..., 0] + s * wi[..., 1]
     y = -s * wi[..., 0] + c * wi[..., 1]
     z = wi[..., 2]
-    ct, st = np.cos(theta_h), np.sin(theta_h)
+    ct, st = xp.cos(theta_h), xp.sin(theta_h)
     x, z = ct * x - st * z, st * x + ct * z
-    return theta_h, np.arccos(np.clip(z, -1.0, 1.0)), np.arctan2(y, x)
+    return theta_h, xp.arccos(xp.clip(z, -1.0, 1.0)), xp.arctan2(y, x)
 
 
-def merl_indices(wo, wi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def merl_indices(wo, wi, xp=np) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Table indices (i, j, k) for [..., 3] direction pairs, as in MERL's BRDFRead.cpp:
     i = floor(sqrt(theta_h / (pi/2) * 90 * 90)), j = floor(theta_d / (pi/2) * 90),
     k = floor((phi_d mod pi) / pi * 180), since reciprocity makes f_r(phi_d) =
     f_r(phi_d + pi); each clamped to the table. (BRDFRead.cpp adds pi to negative phi_d
     and clamps, so at phi_d = +pi exactly it picks k = 179 where this picks k = 0: the same
-    angle, and a swap of wo and wi no longer changes the cell.)"""
-    theta_h, theta_d, phi_d = half_diff_angles(wo, wi)
-    i = np.sqrt(np.maximum(theta_h, 0.0) / (np.pi / 2) * 90.0 * 90.0)
+    angle, and a swap of wo and wi no longer changes the cell.) `xp` as for
+    `half_diff_angles`."""
+    theta_h, theta_d, phi_d = half_diff_angles(wo, wi, xp)
+    i = xp.sqrt(xp.maximum(theta_h, 0.0) / (np.pi / 2) * 90.0 * 90.0)
     j = theta_d / (np.pi / 2) * 90.0
-    k = np.mod(phi_d, np.pi) / np.pi * 180.0
-    return tuple(np.clip(np.floor(a).astype(np.int64), 0, n - 1) for a, n in zip((i, j, k), MERL_SHAPE))
+    k = xp.mod(phi_d, np.pi) / np.pi * 180.0
+    index = np.int64 if xp is np else xp.int32
+    return tuple(xp.clip(xp.floor(a).astype(index), 0, n - 1) for a, n in zip((i, j, k), MERL_SHAPE))
 
 
 def merl_lookup(table, wo, wi) -> np.ndarray:

@@ -149,18 +149,18 @@ def test_fit_recovers_cook_torrance_ggx():
     data = fb.sample_material(truth, 800, seed=5)
     res = fb.fit(fb.model_spec("cook_torrance_ggx"), data, alphas=(0.05, 0.4), max_steps=100)
     assert res.converged
-    assert float(res.values["alpha"]) == pytest.approx(0.18, rel=0.05)
-    assert float(res.values["f0"]) == pytest.approx(0.06, rel=0.05)
-    np.testing.assert_allclose(np.asarray(res.values["diffuse"]), [0.4, 0.2, 0.1], rtol=0.05)
-    assert res.error < 1e-4
+    assert float(res.params["alpha"]) == pytest.approx(0.18, rel=0.05)
+    assert float(res.params["f0"]) == pytest.approx(0.06, rel=0.05)
+    np.testing.assert_allclose(np.asarray(res.params["diffuse"]), [0.4, 0.2, 0.1], rtol=0.05)
+    assert res.info["error"] < 1e-4
 
 
 def test_fit_recovers_blinn_phong_with_bfgs():
     truth = jr.bsdf.BlinnPhong(kd=(0.2, 0.3, 0.4), ks=0.3, q=120.0)
     data = fb.sample_material(truth, 600, seed=6)
     res = fb.fit(fb.model_spec("blinn_phong"), data, solver="bfgs", alphas=(0.3,), max_steps=300)
-    assert float(res.values["q"]) == pytest.approx(120.0, rel=0.05)
-    np.testing.assert_allclose(np.asarray(res.values["ks"]), 0.3, rtol=0.05)
+    assert float(res.params["q"]) == pytest.approx(120.0, rel=0.05)
+    np.testing.assert_allclose(np.asarray(res.params["ks"]), 0.3, rtol=0.05)
 
 
 # --------------------------------------------------------------------------- experiments

@@ -365,12 +365,13 @@ def run(cfg, out):
                      alphas=tuple(f["alphas"]), max_steps=f["max_steps"], rtol=f["rtol"], atol=f["atol"])
         seconds = round(time.perf_counter() - t0, 2)
         rows.append({"label": label, "model": name, "options": options,
-                     "parameters": {k: np.asarray(v).tolist() for k, v in res.values.items()},
-                     "error_fit": res.error, "error_heldout": float(fb.ngan_error(res.material, test_data)),
-                     "objective": res.objective, "objectives_per_start": res.objectives.tolist(),
+                     "parameters": {k: np.asarray(v).tolist() for k, v in res.params.items()},
+                     "error_fit": res.info["error"],
+                     "error_heldout": float(fb.ngan_error(res.info["material"], test_data)),
+                     "objective": res.loss, "objectives_per_start": res.info["objectives"].tolist(),
                      "steps": res.steps, "converged": res.converged, "seconds": seconds})
-        fits.append((label, res.material))
-        print(f"  {label}: E = {res.error:.5f} ({res.steps} steps, {seconds} s)", flush=True)
+        fits.append((label, res.info["material"]))
+        print(f"  {label}: E = {res.info['error']:.5f} ({res.steps} steps, {seconds} s)", flush=True)
 
     settings = (f"{int(fit_data.f.shape[0])} cells fitted, {int(test_data.f.shape[0])} held out; "
                 f"θi, θo ≤ {d['max_theta']}°; weighting {d['weighting']}; compression "

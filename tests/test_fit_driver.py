@@ -1,0 +1,223 @@
+"""The fitting driver (`jaxrt.fit`): transforms, optax loops with per-group learning
+rates, the callback's loss history, checkpoints that a killed run resumes from, and
+multi-view rendering (`jaxrt.views`)."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+import pytest
+
+import jaxrt as jr
+from jaxrt import fit, sdf, views
+
+
+def test_fit_is_reachable_from_the_package():
+    assert jr.fit.fit is fit.fit and jr.render_views is views.render_views
+    assert jr.orbit is views.orbit and jr.stack_cameras is views.stack_cameras
+
+
+# -- transforms -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("t, lo, hi", [(fit.POSITIVE, 0, np.inf), (fit.LOG, 0, np.inf),
+                                       (fit.UNIT, 0, 1), (fit.ABOVE_ONE, 1, np.inf),
+                                       (fit.between(-2.0, 3.0), -2, 3), (fit.above(0.5), 0.5, np.inf)])
+def test_transforms_keep_values_legal_and_invert(t, lo, hi):
+    u = jnp.linspace(-30.0, 30.0, 61)
+    x = t(u)
+    assert np.all(np.asarray(x) >= lo) and np.all(np.asarray(x) <= hi)
+    g = jax.vmap(jax.grad(t))(u)
+    assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g) >= 0)
+    inside = np.asarray(x)[(np.asarray(x) > lo + 1e-3) & (np.asarray(x) < min(hi, 1e6) - 1e-3)]
+    np.testing.assert_allclose(np.asarray(t(t.inverse(inside))), inside, rtol=1e-9)
+
+
+def test_constrain_applies_a_prefix_tree_of_transforms():
+    params = {"r": jnp.asarray([1.0, 2.0]), "m": (jnp.asarray(0.3), jnp.asarray(1.5)), "c": jnp.zeros(3)}
+    transforms = {"r": fit.POSITIVE, "m": (fit.UNIT, fit.ABOVE_ONE), "c": None}
+    raw = fit.unconstrain(params, transforms)
+    assert float(raw["m"][1]) == pytest.approx(np.log(np.expm1(0.5)), rel=1e-12)
+    back = fit.constrain(raw, transforms)
+    for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
+    with pytest.raises(ValueError, match="kind"):
+        fit.Transform("tanh")
+
+
+# -- optax loops ----------------------------------------------------------------------
+
+
+def _quadratic(p, _):
+    return (p["a"] - 3.0) ** 2 + 10.0 * (p["b"] - 0.2) ** 2
+
+
+START = {"a": jnp.asarray(1.0), "b": jnp.asarray(0.5)}
+
+
+def test_adam_with_transforms_converges_and_keeps_values_legal():
+    seen = []
+    result = fit.fit(_quadratic, START, fit.adam(0.1, 400), max_steps=400,
+                     transforms={"a": fit.POSITIVE, "b": fit.UNIT},
+                     callback=lambda info: seen.append(0.0 < float(info.params["b"]) < 1.0))
+    assert all(seen) and result.result == "max_steps" and result.steps == 400
+    assert float(result.params["a"]) == pytest.approx(3.0, rel=1e-4)
+    assert float(result.params["b"]) == pytest.approx(0.2, rel=1e-4)
+    # history: the loss at every iterate, the start's first, the final one last
+    assert result.history.shape == (401,)
+    assert result.history[0] == pytest.approx(float(_quadratic(START, None)))
+    assert result.history[-1] == pytest.approx(float(result.loss))
+
+
+def test_per_group_learning_rates():
+    """Adam's first step moves every leaf by about its learning rate: with per-leaf
+    scales (1, 0.25) the two leaves move in that ratio; a scale of 0 freezes a leaf; and
+    optax.multi_transform (labels per leaf) works through the same driver."""
+    one = fit.fit(_quadratic, START, fit.adam(0.01, scales={"a": 1.0, "b": 0.25}), max_steps=1,
+                  progress=False)
+    da, db = abs(float(one.params["a"]) - 1.0), abs(float(one.params["b"]) - 0.5)
+    assert da == pytest.approx(0.01, rel=1e-3) and db == pytest.approx(0.0025, rel=1e-3)
+    frozen = fit.fit(_quadratic, START, fit.adam(0.1, scales={"a": 1.0, "b": 0.0}), max_steps=20)
+    assert float(frozen.params["b"]) == 0.5 and float(frozen.params["a"]) > 1.5
+    multi = optax.multi_transform({"fast": optax.adam(0.1), "slow": optax.sgd(0.0)},
+                                  {"a": "fast", "b": "slow"})
+    res = fit.fit(_quadratic, START, multi, max_steps=20)
+    assert float(res.params["b"]) == 0.5 and float(res.params["a"]) > 1.5
+
+
+def test_callback_sees_the_loss_history_and_can_stop_the_fit():
+    calls = []
+
+    def callback(info):
+        calls.append((info.step, info.history.copy(), info.loss))
+        return info.step == 7
+
+    result = fit.fit(_quadratic, START, fit.adam(0.05), max_steps=50, callback=callback)
+    assert result.result == "callback" and result.steps == 7 and result.converged
+    assert [c[0] for c in calls] == list(range(1, 8))
+    for step, history, loss in calls:
+        assert history.shape == (step,) and history[-1] == loss
+    np.testing.assert_array_equal(result.history[:7], calls[-1][1])
+    assert np.all(np.diff(result.history) < 0)  # Adam descends on this quadratic
+
+
+def test_atol_stops_and_non_finite_losses_keep_the_last_finite_iterate():
+    res = fit.fit(_quadratic, START, fit.adam(0.1), max_steps=500, atol=1e-2)
+    assert res.result == "atol" and res.converged and float(res.loss) <= 1e-2 and res.steps < 500
+    # log(a − 0.5) becomes NaN once a step takes a below 0.5 (lr 1 from a = 1).
+    res = fit.fit(lambda p, _: jnp.log(p["a"] - 0.5) + 0.0 * p["b"], START, optax.sgd(1.0),
+                  max_steps=10)
+    assert res.result == "non-finite loss" and np.isfinite(float(res.loss))
+    assert np.all(np.isfinite(res.history))
+
+
+def test_optimistix_solvers_take_transforms_too():
+    result = fit.fit(_quadratic, START, optx.BFGS(rtol=1e-10, atol=1e-10),
+                     transforms={"a": fit.POSITIVE, "b": fit.UNIT})
+    assert result.converged and float(fit.relative_error(result.params, {"a": 3.0, "b": 0.2})) < 1e-6
+    assert result.history.shape == (2,)
+    with pytest.raises(ValueError, match="optax"):
+        fit.fit(_quadratic, START, checkpoint="x.npz")
+
+
+# -- checkpoints ----------------------------------------------------------------------
+
+KILLED = textwrap.dedent(
+    """
+    import os, signal, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    sys.path.insert(0, {tests!r})
+    from test_fit_driver import run_checkpointed
+    def die(info):
+        if info.step == 13:
+            os.kill(os.getpid(), signal.SIGKILL)  # killed mid-fit, between checkpoints
+    run_checkpointed({path!r}, die)
+    """)
+
+
+def run_checkpointed(path, callback=None):
+    """The fit of the checkpoint test: a small rendered problem would do as well; the
+    driver's state (params, Adam moments, schedule count, history) is what matters."""
+    def loss(p, _):
+        return jnp.sum((p["x"] - jnp.arange(4.0)) ** 2 * (1.0 + jnp.sin(p["x"]) ** 2)) + p["s"] ** 2
+
+    start = {"x": jnp.full(4, 2.0), "s": jnp.asarray(1.5)}
+    return fit.fit(loss, start, fit.adam(0.05, 40, warmup=5), max_steps=40,
+                   transforms={"x": None, "s": fit.POSITIVE}, callback=callback,
+                   checkpoint=path, checkpoint_every=5, progress=False)
+
+
+def test_a_killed_fit_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
+    path = str(tmp_path / "fit.npz")
+    script = KILLED.format(tests=os.path.dirname(__file__), path=path)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    with np.load(path) as z:
+        assert int(z["step"]) == 10 and z["history"].shape == (10,)
+    resumed = run_checkpointed(path)
+    fresh = run_checkpointed(str(tmp_path / "fresh.npz"))
+    assert resumed.steps == fresh.steps == 40
+    for a, b in zip(jax.tree.leaves(resumed.params), jax.tree.leaves(fresh.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(resumed.history, fresh.history, rtol=1e-12)
+    # a finished checkpoint resumes to the same result without stepping
+    again = run_checkpointed(path)
+    np.testing.assert_array_equal(np.asarray(again.params["x"]), np.asarray(resumed.params["x"]))
+    # a checkpoint of another fit is refused with the file's name
+    with pytest.raises(ValueError, match="fit.npz: checkpoint of another fit"):
+        fit.fit(_quadratic, START, fit.adam(0.1), max_steps=3, checkpoint=path)
+
+
+# -- several views --------------------------------------------------------------------
+
+
+def _scene(radius=0.6):
+    return jr.Scene(sdf.Union(sdf.Translate(sdf.Sphere(radius, material=0), (0.0, 0.6, 0.0)),
+                              sdf.Plane(material=1)),
+                    [jr.bsdf.Lambert((0.8, 0.3, 0.2)), jr.bsdf.Lambert(0.5)],
+                    [jr.PointLight((2.0, 4.0, -3.0), (30.0, 30.0, 30.0))], background=0.1)
+
+
+def test_render_views_is_the_per_camera_render_and_differentiable():
+    settings = jr.RenderSettings(dtype="float64", silhouette=True, shadows="none")
+    cameras = views.orbit(3, target=(0.0, 0.5, 0.0), distance=4.0, elevation=[20.0, 35.0, 10.0],
+                          width=8, height=6)
+    assert views.num_views(cameras) == 3 and cameras.eye.shape == (3, 3) and cameras.width == 8
+    images = views.render_views(_scene(), cameras, settings)
+    assert images.rgb.shape == (3, 6, 8, 3) and images.depth.shape == (3, 6, 8)
+    for i in range(3):
+        one = jr.render(_scene(), views.view(cameras, i), settings)
+        np.testing.assert_allclose(np.asarray(images.rgb[i]), np.asarray(one.rgb), atol=1e-12)
+    # eye k at distance 4 from the target, azimuth 120° apart
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(cameras.eye - cameras.target), axis=-1), 4.0)
+
+    def loss_all(r):
+        return jnp.sum(views.render_views(_scene(r), cameras, settings).rgb)
+
+    def loss_each(r):
+        return sum(jnp.sum(jr.render(_scene(r), views.view(cameras, i), settings).rgb) for i in range(3))
+
+    g_all, g_each = jax.grad(loss_all)(0.6), jax.grad(loss_each)(0.6)
+    assert float(g_all) != 0.0 and float(g_all) == pytest.approx(float(g_each), rel=1e-9)
+
+
+def test_stack_cameras_needs_one_type_and_resolution():
+    a = jr.PerspectiveCamera(width=8, height=8)
+    with pytest.raises(ValueError, match="one resolution"):
+        views.stack_cameras([a, jr.PerspectiveCamera(width=8, height=6)])
+    with pytest.raises(ValueError, match="one camera type"):
+        views.stack_cameras([a, jr.OrthographicCamera(width=8, height=8)])
+    with pytest.raises(ValueError, match="stacked"):
+        views.render_views(_scene(), a)
+    with pytest.raises(ValueError, match="split evenly"):
+        views.render_views(_scene(), views.stack_cameras([a, a, a]), devices=[jax.devices()[0]] * 2)
