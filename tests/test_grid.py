@@ -212,7 +212,7 @@ def test_redistance_recovers_a_scaled_distance_field():
     h = 2.0 / 32
     v, w = np.asarray(g.values), np.asarray(rd.values)
     near = np.abs(v) < 2.0 * h
-    assert np.abs(w - v)[near].max() < 0.1 * h
+    assert np.abs(w - v)[near].max() < 0.15 * h
     assert np.array_equal(np.sign(w), np.sign(np.where(v == 0, 1.0, v)))
     # everywhere a distance field to first order: well within one cell of the truth
     assert np.abs(w - v).max() < 1.5 * h

@@ -8,8 +8,10 @@ Targets: `views` cameras on a Fibonacci band of elevations around it, point-samp
 `target_spp` samples per pixel with `silhouette = false` (the box-filtered truth), lit
 by coloured directional lights (the shading encodes the normal), no shadows.
 
-The fit: the grid's samples, started as a sphere enclosing the shape, are moved by
-Adam (`jaxrt.fit.adam`, cosine schedule, a step of `learning_rate` cells) on
+The fit: the grid's samples start as the visual hull of the targets' silhouettes
+(`start = "visual_hull"`: space carving, a vertex is outside if any view sees
+background there; it cannot see the dent) or as a sphere enclosing the shape
+(`start = "sphere"`), and are moved by Adam (`jaxrt.fit.adam`, cosine schedule, a step of `learning_rate` cells) on
 
     loss = mean over views, pixels, channels of (render(grid) − target)²
            + eikonal_weight · eikonal_loss(grid, band = eikonal_band cells),
@@ -121,8 +123,7 @@ def grid(cfg, values):
 def visual_hull(cfg, cams, targets, n):
     """Start values on an n³ grid: the visual hull of the targets' silhouettes (space
     carving). A pixel is background where every channel is within `hull_threshold` of
-    the background colour; masks are dilated by one pixel (a partly covered outline
-    pixel stays object). A vertex is outside if it projects onto background in any
+    the background colour (so a partly covered outline pixel is object). A vertex is outside if it projects onto background in any
     view; the ±h/2 labels are then redistanced into a distance field."""
     x = np.asarray(vertices_np(cfg, n)).reshape(-1, 3)
     inside = np.ones(len(x), bool)
@@ -131,10 +132,6 @@ def visual_hull(cfg, cams, targets, n):
         cam = jr.views.view(cams, i)
         img = np.asarray(targets[i])
         mask = np.any(np.abs(img - bg) > cfg["hull_threshold"], axis=-1)
-        pad = np.pad(mask, 1)
-        for dy in (-1, 0, 1):  # one-pixel dilation
-            for dx in (-1, 0, 1):
-                mask = mask | pad[1 + dy:1 + dy + mask.shape[0], 1 + dx:1 + dx + mask.shape[1]]
         u, v, w = (np.asarray(a, float) for a in cam.frame())
         rel = x - np.asarray(cam.eye, float)
         z = rel @ w
@@ -333,18 +330,28 @@ def fit(cfg, log=print):
 
 
 def write_outputs(cfg, results, parts, out, log=print):
+    """Every output file (module docstring). The fitted scene is written as TOML and read
+    back with `jaxrt.config.load`; the "fit" images and render.exr are renders of that
+    file's scene, through the study's cameras at the targets' settings (one compiled
+    program for them and the start's images: the start is upsampled to the fitted
+    grid's resolution, which keeps its shape)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(cfg, indent=2))
     (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(markdown(cfg, results))
     curves(results, out / "curves.png", cfg)
-    image_grid(cfg, parts, out / "images.png")
-    np.save(out / "fitted_grid.npy", np.asarray(parts["fitted"].values, np.float32))
+    fitted = parts["fitted"]
+    np.save(out / "fitted_grid.npy", np.asarray(fitted.values, np.float32))
     write_scene(cfg, parts, out)
     scene, camera, render_settings = jr.config.load(out / "fitted.toml")
-    jr.io.write_exr(out / "render.exr", jr.render(scene, camera, render_settings))
+    fit_images = jr.render_views(scene, parts["cameras"], render_settings).rgb
+    start = grid(cfg, parts["start"])
+    start = sdf.upsample(start, (fitted.values.shape[0] - 1) // (start.values.shape[0] - 1))
+    start_images = jr.render_views(make_scene(cfg, start), parts["cameras"], render_settings).rgb
+    image_grid(cfg, parts["targets"], start_images, fit_images, out / "images.png")
+    jr.io.write_exr(out / "render.exr", np.asarray(fit_images[0]))
     log(f"wrote {out}/: results.json, results.md, curves.png, images.png, fitted_grid.npy, "
-        "fitted.toml, render.exr, config.json")
+        "fitted.toml, render.exr (view 0), config.json")
 
 
 def markdown(cfg, results):
@@ -400,21 +407,14 @@ def curves(results, path, cfg):
     plt.close(fig)
 
 
-def image_grid(cfg, parts, path):
-    """Rows of views: target | start | fit | |error| (fit − target, ×4), rendered at the
-    targets' settings."""
+def image_grid(cfg, target, start, fitted, path):
+    """Rows of views `figure_views`: target | start | fit | |error| (|fit − target|, ×4)."""
     pick = [i for i in cfg["figure_views"] if i < cfg["views"]]
-    cams = jr.stack_cameras([jr.views.view(parts["cameras"], i) for i in pick])
-    st = settings(cfg, True)
-    start = jr.render_views(make_scene(cfg, grid(cfg, parts["start"])), cams, st).rgb
-    fitted = jr.render_views(make_scene(cfg, parts["fitted"]), cams, st).rgb
-    target = parts["targets"][np.asarray(pick)]
-    err = 4.0 * jnp.abs(fitted - target)
-    gap = 2
-    h, w = cfg["height"], cfg["width"]
+    gap, h, w = 2, cfg["height"], cfg["width"]
     canvas = np.ones((len(pick) * (h + gap) - gap, 4 * (w + gap) - gap, 3), np.float32)
-    for r in range(len(pick)):
-        for c, img in enumerate((target[r], start[r], fitted[r], err[r])):
+    for r, i in enumerate(pick):
+        row = (target[i], start[i], fitted[i], 4.0 * jnp.abs(fitted[i] - target[i]))
+        for c, img in enumerate(row):
             canvas[r * (h + gap):r * (h + gap) + h, c * (w + gap):c * (w + gap) + w] = np.asarray(img)
     jr.io.write_png(path, canvas)
 

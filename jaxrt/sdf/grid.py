@@ -206,9 +206,11 @@ def redistance(grid, iterations=None):
     its samples (a new `Grid`; no gradient is meant to flow through it: call it between
     optimiser steps).
 
-    1. Vertices next to the surface (a 6-neighbour of opposite sign) get the first-order
-       distance φ / |∇φ|, ∇φ by central differences (one-sided at the border); this is
-       exact for a linear field, and maps s·φ to φ for any scale s > 0.
+    1. Vertices next to the surface (a 6-neighbour of opposite sign) get the distance
+       to the plane through the surface's crossings of their edges (linear along each
+       edge, as the interpolant is), or |φ| / |∇φ| (central differences) where that
+       is smaller: exact for a linear field, the same for s·φ and φ (s > 0), and never
+       more than one cell, so no steep cell is created.
     2. The others get the Godunov upwind solution of the eikonal equation |∇u| = 1
        (Zhao 2005, "A fast sweeping method for eikonal equations"), updated all at
        once (Jacobi) `iterations` times (default: the largest n, which lets the front
@@ -225,13 +227,29 @@ def redistance(grid, iterations=None):
 def _redistance(v, h, iterations):
     """The samples of `redistance` from samples v [nx, ny, nz] and spacings h [3]."""
     sign = jnp.where(v < 0.0, -1.0, 1.0).astype(v.dtype)
+    # Distance to the surface along each axis: the linear crossing on an edge whose
+    # ends differ in sign, s = h |φ_i| / (|φ_i| + |φ_j|) (the nearer of the two edges);
+    # the vertex's distance is that to the plane through the crossings,
+    # d0 = (Σ_axes 1 / s_a²)^(−1/2), exact for a linear field and ≤ min_a s_a ≤ h.
+    a_v = jnp.abs(v)
+    inv2 = jnp.zeros(v.shape, v.dtype)
     near = jnp.zeros(v.shape, bool)
     for a in range(3):
-        flip = (v[_sl(a, 1, None)] * v[_sl(a, 0, -1)]) <= 0.0
-        near = near.at[_sl(a, 1, None)].set(near[_sl(a, 1, None)] | flip)
-        near = near.at[_sl(a, 0, -1)].set(near[_sl(a, 0, -1)] | flip)
+        pad = jnp.pad(v, [(1, 1) if b == a else (0, 0) for b in range(3)], mode="edge")
+        s_a = None
+        for nb in (jax.lax.slice_in_dim(pad, 0, v.shape[a], axis=a),
+                   jax.lax.slice_in_dim(pad, 2, v.shape[a] + 2, axis=a)):
+            cross = (sign * jnp.where(nb < 0.0, -1.0, 1.0) < 0.0) | (v == 0.0)
+            s = jnp.where(cross, h[a] * a_v / jnp.maximum(a_v + jnp.abs(nb), 1e-30), jnp.inf)
+            s_a = s if s_a is None else jnp.minimum(s_a, s)
+        crossed = jnp.isfinite(s_a)
+        near = near | crossed
+        inv2 = inv2 + jnp.where(crossed, 1.0 / jnp.maximum(s_a, 1e-30) ** 2, 0.0)
+    d0 = jnp.where(a_v == 0.0, 0.0, 1.0 / jnp.sqrt(jnp.maximum(inv2, 1e-30)))
+    # where the field is smooth, |φ| / |∇φ| (central differences) is closer; the smaller
+    # of the two keeps the bound of one cell
     g = jnp.stack(jnp.gradient(v, *[h[a] for a in range(3)]), axis=-1)
-    d0 = jnp.abs(v) / jnp.maximum(jnp.linalg.norm(g, axis=-1), 1e-12)
+    d0 = jnp.minimum(d0, a_v / jnp.maximum(jnp.linalg.norm(g, axis=-1), 1e-30))
     big = jnp.asarray(jnp.sum(h * (jnp.asarray(v.shape, v.dtype) - 1.0)), v.dtype)
     u0 = jnp.where(near, d0, big)
 
