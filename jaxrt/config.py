@@ -16,7 +16,9 @@ A scene file has the tables
     [surface]     a shape tree: `type` is a `jaxrt.sdf` node in snake_case ("sphere",
                   "smooth_union", "translate", ...); combinations take `children`
                   (union, intersection) or `a` and `b`; placements and deformations
-                  take `child`
+                  take `child`; a "grid" (`jaxrt.sdf.Grid`) takes `values`, an
+                  [nx, ny, nz] nested array or the path of a .npy file relative to the
+                  scene file, and the box's `lower` and `upper` corners
     background = [r, g, b]   (top level, optional)
 
 Every error is a `ConfigError` whose message reads
@@ -237,6 +239,10 @@ class _Loader:
                 args[arg] = self.shape(value, sub, names)
             elif arg == "material":
                 args[arg] = self.material_ref(value, sub, names)
+            elif arg == "values" and cls is sdf.Grid and isinstance(value, str):
+                args[arg] = self.array_file(value, sub)
+                if not np.all(np.isfinite(args[arg])):
+                    self.fail(sub, value, "a .npy file of finite numbers (it has NaN or inf)")
             else:
                 args[arg] = value
         if cls in (sdf.Union, sdf.Intersection):

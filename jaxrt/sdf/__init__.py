@@ -29,6 +29,13 @@ from .domain import (
     Translate as Translate,
     rotate_axis_angle as rotate_axis_angle,
 )
+from .grid import (
+    Grid as Grid,
+    eikonal_loss as eikonal_loss,
+    redistance as redistance,
+    resample as resample,
+    upsample as upsample,
+)
 from .primitives import (
     Box as Box,
     Capsule as Capsule,
