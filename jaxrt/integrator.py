@@ -43,8 +43,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .bsdf.dispatch import dispatch
 from .bsdf.scattering import reflect, refract
 from .heightfield import HeightField
+from .kinds import lookup
 from .lights import shadow_ray
 from .march import SphereTracing, tape
 from .trace import hit_epsilon, sphere_trace, surface_normal
@@ -133,16 +135,15 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
     wo_local = to_local(wo, n)
     origin = p + spawn_offset(p, settings) * n if origin is None else origin
     # ambient() may come in the default float dtype (Material's zeros): cast to p's.
-    radiance = colour(select([m.ambient().astype(p.dtype) for m in scene.materials], material))
-    diffuse = [m for m in scene.materials if m.has_diffuse]
-    if not diffuse:
+    radiance = colour(dispatch(scene.materials, material, lambda m: m.ambient().astype(p.dtype)))
+    if not scene.flags("has_diffuse"):
         return radiance
-    index = _index_table(scene.materials, lambda m: m.has_diffuse, material)
     for light in scene.lights:
         wi, dist, irradiance = light.illuminate(p)
         cos_i = dot(wi, n)
         wi_local = to_local(wi, n)
-        f = select([m.eval(wo_local, wi_local) for m in diffuse] + [jnp.zeros(3, p.dtype)], index)
+        f = dispatch(scene.materials, material, lambda m: m.eval(wo_local, wi_local),
+                     jnp.zeros(3, p.dtype), lambda m: m.has_diffuse)
         lit = active & (cos_i > 0.0)
         dist = jnp.where(lit, dist, 0.0)
         visible = visibility(scene, origin, wi, dist, settings)
@@ -154,28 +155,10 @@ def _rgb(x):
     return x
 
 
-def _index_table(materials, predicate, material):
-    """Position of `material` among the materials with `predicate`, or their count if
-    it has not (the slot of a default appended to their list)."""
-    table, k = [], 0
-    count = sum(bool(predicate(m)) for m in materials)
-    for m in materials:
-        table.append(k if predicate(m) else count)
-        k += int(bool(predicate(m)))
-    if len(set(table)) == 1:
-        return table[0]
-    return select([jnp.int32(k) for k in table], material)
-
-
 def _select_material(materials, predicate, fn, default, material):
     """fn(m) for the material with index `material` if predicate(m), else `default`;
-    fn is evaluated only for the materials with the predicate (a static filter)."""
-    chosen = [fn(m) for m in materials if predicate(m)]
-    if not chosen:
-        return default
-    values = chosen + [default]
-    index = _index_table(materials, predicate, material)
-    return jax.tree_util.tree_map(lambda *xs: select(list(xs), index), *values)
+    fn is evaluated once per kind of material with the predicate (`bsdf.dispatch`)."""
+    return dispatch(materials, material, fn, default, predicate)
 
 
 class SceneHit(NamedTuple):
@@ -369,12 +352,12 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
         local = direct_lighting(scene, p, n, wo, material, settings, colour, active=found,
                                 origin=above)
     else:
-        local = colour(select([m.ambient().astype(dtype) for m in scene.materials], material))
+        local = colour(dispatch(scene.materials, material, lambda m: m.ambient().astype(dtype)))
     radiance = jnp.where(found, local, jnp.where(ray.alive, colour(scene.background), 0.0))
     # Beer–Lambert along the segment (σ = 0 outside any medium).
     throughput = ray.weight * jnp.exp(-ray.sigma * hit.t)
 
-    albedo = select([m.base_color() for m in scene.materials], material)
+    albedo = dispatch(scene.materials, material, lambda m: m.base_color())
     zero3 = jnp.zeros(3, dtype)
     aovs = {
         "depth": hit.t,
@@ -400,17 +383,14 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
         scene.materials, specular, lambda m: m.specular(dot(n_out, wo), wavelength),
         (zeros, zeros, jnp.ones((), dtype)), material)
     cone = jnp.stack([ray.cone[0] + ray.cone[1] * hit.t, ray.cone[1]])
-    yes, no = jnp.ones((), bool), jnp.zeros((), bool)
     children = {}
     if "reflect" in tree.branches:
-        spawns = _select_material(scene.materials, lambda m: m.has_reflection,
-                                  lambda m: yes, no, material)
+        spawns = lookup([m.has_reflection for m in scene.materials], material)
         alive = found & spawns
         children["reflect"] = Ray(above, reflect(wo, n), cone,
                                   jnp.where(alive, throughput * colour(c_refl), 0.0), ray.sigma, alive)
     if "transmit" in tree.branches:
-        spawns = _select_material(scene.materials, lambda m: m.has_transmission,
-                                  lambda m: yes, no, material)
+        spawns = lookup([m.has_transmission for m in scene.materials], material)
         wt, valid = refract(wo, n_out, eta)
         inside = _select_material(scene.materials, lambda m: m.has_transmission,
                                   lambda m: getattr(m, "absorption", zeros), zeros, material)
