@@ -106,13 +106,13 @@ def _recorded(kernel, params, samples, settings, grid, offset):
 
     @jax.custom_jvp
     def image(dyn_, s):
-        return record(dyn_, s)["image"]
+        return record(dyn_, s)[0]["image"]
 
     @image.defjvp
     def image_jvp(primals, tangents):
-        out = record(*primals)
+        out, kinds = record(*primals)
         entries = jax.lax.stop_gradient(out["tape"])
-        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries)  # noqa: E731
+        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds)  # noqa: E731
         _, tangent = jax.jvp(replay, primals, tangents)
         return out["image"], tangent
 
@@ -133,22 +133,31 @@ def _sample_kernel(settings):
 
 
 def _record(kernel, params, samples, settings, grid, offset):
-    """{"image": per-sample outputs, "tape": per-sample records of every march}: the
-    kernel run lane-wise (`_fused`) with its marches recorded (no gradient)."""
+    """({"image": per-sample outputs, "tape": per-sample records of every march}, kinds):
+    the kernel run lane-wise (`_fused`) with its marches recorded (no gradient).
+    Boolean records travel as int32 (kernels store words, not predicates); `kinds`
+    (static: the tape's structure with True at its boolean records) lets `_replay` read
+    them back."""
+    kinds = []
 
     def record_kernel(ray, scene, camera):
         with tape.recording() as t:
             out = kernel(ray, scene, camera)
-        return {"image": out, "tape": t.entries}
+        kinds[:] = [jax.tree_util.tree_map(lambda x: x.dtype == jnp.bool_, t.entries)]
+        words = jax.tree_util.tree_map(
+            lambda x: x.astype(jnp.int32) if x.dtype == jnp.bool_ else x, t.entries)
+        return {"image": out, "tape": words}
 
-    return _fused(*params, samples, settings, record_kernel, grid, offset)
+    out = _fused(*params, samples, settings, record_kernel, grid, offset)
+    return out, kinds[0]
 
 
-def _replay(kernel, params, samples, entries):
+def _replay(kernel, params, samples, entries, kinds):
     """The kernel vmapped over all `samples` at once with every march read from `entries`
-    (the records of `_record`): loop-free and differentiable."""
+    (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable."""
     scene, camera = params
     rays = (*jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1]), samples)
+    entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
 
     def one(ray, entry):
         with tape.replaying(entry):
@@ -170,8 +179,8 @@ def _replay_image(scene, camera, settings):
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
     kernel = _sample_kernel(settings)
     grid = (camera.height, camera.width * settings.spp)
-    out = _record(kernel, (scene, camera), samples, settings, grid, (0, 0))
-    return out["image"], _replay(kernel, (scene, camera), samples, out["tape"])
+    out, kinds = _record(kernel, (scene, camera), samples, settings, grid, (0, 0))
+    return out["image"], _replay(kernel, (scene, camera), samples, out["tape"], kinds)
 
 
 def _fused(scene, camera, samples, settings, kernel, grid, offset):
