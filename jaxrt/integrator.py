@@ -404,8 +404,9 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
         spawns = _select_material(scene.materials, lambda m: m.has_reflection,
                                   lambda m: yes, no, material)
         alive = found & spawns
-        children["reflect"] = Ray(above, reflect(wo, n), cone,
-                                  jnp.where(alive, throughput * colour(c_refl), 0.0), ray.sigma, alive)
+        wr = reflect(wo, n)
+        weight = throughput * colour(c_refl) * _offset_absorption(ray.sigma, above, p, wr)
+        children["reflect"] = Ray(above, wr, cone, jnp.where(alive, weight, 0.0), ray.sigma, alive)
     if "transmit" in tree.branches:
         spawns = _select_material(scene.materials, lambda m: m.has_transmission,
                                   lambda m: yes, no, material)
@@ -415,9 +416,19 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
         # Entering: the medium of the material; leaving: vacuum.
         sigma = jnp.where(entering, colour(inside), 0.0)
         alive = found & spawns & valid
-        weight = jnp.where(alive, throughput * colour(c_trans), 0.0)
-        children["transmit"] = Ray(below, wt, cone, weight, sigma, alive)
+        weight = throughput * colour(c_trans) * _offset_absorption(sigma, below, p, wt)
+        children["transmit"] = Ray(below, wt, cone, jnp.where(alive, weight, 0.0), sigma, alive)
     return children
+
+
+def _offset_absorption(sigma, origin, p, direction):
+    """exp(−σ (origin − p)·d): Beer–Lambert over the part of the segment from the surface
+    point p to a child's offset origin, which the child's own t does not include
+    (|p_hit − p| = t + (origin − p)·d to first order in the offset). Without it, a ray
+    through a slab of thickness L is attenuated over L − 2·offset. No gradient: the
+    offset is a precision device, not geometry."""
+    length = jax.lax.stop_gradient(dot(origin - p, direction))
+    return jnp.exp(-sigma * jnp.maximum(length, 0.0))
 
 
 def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):
