@@ -46,6 +46,7 @@ import numpy as np
 from .bsdf.scattering import reflect, refract
 from .heightfield import HeightField
 from .lights import shadow_ray
+from .march import SphereTracing, tape
 from .trace import hit_epsilon, sphere_trace, surface_normal
 from .vecmath import dot, safe_div, to_local
 
@@ -201,7 +202,8 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     """intersectScene of the notes: the nearest of the sphere-traced SDF `surface` and
     of every height field (marched by `HeightField.intersect`). One ray."""
     surface = scene.surface
-    hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max)
+    hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max,
+                       fields=("steps",))
     t, found, steps = hit.t, hit.hit, hit.steps
     p = origin + t * direction
     normal = surface_normal(surface, p, settings)
@@ -228,7 +230,7 @@ def visibility(scene, origin, wi, distance, settings):
     if settings.shadows == "none" or not scene.heightfields:
         return visible
     t_max = jnp.minimum(distance, settings.shadow_max_distance or settings.max_distance)
-    quick = settings.replace(newton_steps=0)
+    quick = SphereTracing.of(settings, newton_steps=0)
     for field in scene.heightfields:
         # Only whether it crosses: no interpolation or refinement of the crossing.
         field = HeightField(field.height, field.material, field.max_steps, field.min_step,
@@ -446,7 +448,7 @@ def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels
         def shade(ray, spawn=spawn):
             return shade_ray(scene, ray, settings, tree, colour, wavelength, spawn)
 
-        out = jax.vmap(shade)(rays)
+        out = tape.vmap(shade)(rays)
         levels.append(jnp.sum(out.radiance, axis=0))
         if level == 0:
             aovs = jax.tree_util.tree_map(lambda x: x[0], out.aovs)
@@ -482,7 +484,8 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     def shade(ray):
         return shade_ray(scene, ray, settings, tree, colour, wavelength, True)
 
-    aov_shapes = jax.eval_shape(lambda r: shade(r).aovs, root)
+    with tape.off():  # an abstract evaluation: its marches are not the program's
+        aov_shapes = jax.eval_shape(lambda r: shade(r).aovs, root)
     aovs = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes)
     levels = jnp.zeros((len(sizes), channels), origin.dtype)
 
@@ -498,7 +501,7 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
             buffer, *children)
         return (buffer, levels, aovs), None
 
-    (_, levels, aovs), _ = jax.lax.scan(step, (buffer, levels, aovs), jnp.arange(slots))
+    (_, levels, aovs), _ = tape.scan(step, (buffer, levels, aovs), jnp.arange(slots))
     return levels, aovs
 
 
@@ -552,7 +555,7 @@ def _trace_spectral(scene, origin, direction, cone, settings, tree):
 
         return _trace_tree(scene, origin, direction, cone, settings, tree, colour, 1, lam)
 
-    values, aovs = jax.vmap(one)(lambdas)  # [N, depth + 1, 1]
+    values, aovs = tape.vmap(one)(lambdas)  # [N, depth + 1, 1]
     to_rgb = spectral.spectral_rgb_matrix(lambdas).astype(dtype)  # [3, N]
     levels = values[..., 0].T @ to_rgb.T  # [depth + 1, 3]
     return levels, jax.tree_util.tree_map(lambda x: x[0], aovs)
