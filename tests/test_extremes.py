@@ -95,51 +95,50 @@ def test_exhausted_rays_are_marked_and_shadow_rays_out_of_budget_are_not_visible
         assert float(shadow_ray(sdf, o, d, jnp.float32(50.0), far)) > 0.5, shadows  # it clears
 
 
-def scaled_scene(s, kind):
-    """Floor, a sphere of material `kind` and a box, a point light (intensity ∝ s²) and a
-    directional light, everything in units of s."""
-    materials = {
-        "lambert": jr.bsdf.Lambert(albedo=(0.7, 0.3, 0.2)),
-        "cook_torrance": jr.bsdf.CookTorrance(distribution=jr.bsdf.GGX(0.3)),
-        "phong": jr.bsdf.Phong(kd=(0.2, 0.5, 0.2), ks=0.3, q=20.0),
-        "mirror": jr.bsdf.Mirror(),
-        "dielectric": jr.bsdf.Dielectric(1.5, absorption=(0.3 / s, 0.1 / s, 0.05 / s)),
-    }
-    surface = jr.sdf.Union(
-        jr.sdf.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=0),
-        jr.sdf.Translate(jr.sdf.Sphere(radius=0.8 * s, material=1), offset=(-0.6 * s, 0.8 * s, 0.0)),
-        jr.sdf.Translate(jr.sdf.Box(half_extents=(0.4 * s, 0.5 * s, 0.4 * s), material=0),
-                         offset=(1.0 * s, 0.5 * s, -0.5 * s)),
-    )
-    return jr.Scene(
-        surface=surface, materials=[jr.bsdf.Lambert(albedo=(0.6, 0.6, 0.6)), materials[kind]],
-        lights=[jr.PointLight(position=(2.0 * s, 4.0 * s, 3.0 * s), intensity=(30.0 * s * s,) * 3),
-                jr.DirectionalLight(direction=(-0.4, 1.0, 0.3), irradiance=(0.6, 0.6, 0.6))],
-        background=(0.3, 0.35, 0.45))
+def scaled_scene(s):
+    """Floor and a row of spheres, one per material kind (Lambert, Cook–Torrance, Phong,
+    mirror, absorbing glass), a box, and a point light of intensity ∝ s² (E = I/r² is then
+    the same), everything in units of s (the glass's σ in 1/s)."""
+    materials = [
+        jr.bsdf.Lambert(albedo=(0.6, 0.6, 0.6)),
+        jr.bsdf.Lambert(albedo=(0.7, 0.3, 0.2)),
+        jr.bsdf.CookTorrance(distribution=jr.bsdf.GGX(0.3)),
+        jr.bsdf.Phong(kd=(0.2, 0.5, 0.2), ks=0.3, q=20.0),
+        jr.bsdf.Mirror(),
+        jr.bsdf.Dielectric(1.5, absorption=(0.3 / s, 0.1 / s, 0.05 / s)),
+    ]
+    spheres = [jr.sdf.Translate(jr.sdf.Sphere(radius=0.45 * s, material=k + 1),
+                                offset=((-2.0 + k) * s, 0.45 * s, 0.0)) for k in range(5)]
+    box = jr.sdf.Translate(jr.sdf.Box(half_extents=(0.4 * s, 0.5 * s, 0.4 * s), material=0),
+                           offset=(0.5 * s, 0.5 * s, -1.5 * s))
+    surface = jr.sdf.Union(jr.sdf.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=0), *spheres, box)
+    return jr.Scene(surface=surface, materials=materials,
+                    lights=[jr.PointLight(position=(2.0 * s, 4.0 * s, 3.0 * s),
+                                          intensity=(30.0 * s * s,) * 3)],
+                    background=(0.3, 0.35, 0.45))
 
 
-def render_scaled(s, kind, shadows, width=32, height=24):
-    camera = jr.PerspectiveCamera(eye=(0.0, 1.6 * s, 4.5 * s), target=(0.0, 0.5 * s, 0.0),
-                                  fov=45.0, width=width, height=height)
-    settings = jr.RenderSettings(hit_epsilon=1e-4 * s, max_distance=40.0 * s, shadows=shadows,
-                                 max_depth=2, backend="jax", aovs=())
-    return np.asarray(jr.render(scaled_scene(s, kind), camera, settings).rgb)
+def render_scaled(s, settings, width=40, height=24):
+    camera = jr.PerspectiveCamera(eye=(0.0, 1.6 * s, 4.5 * s), target=(0.0, 0.4 * s, 0.0),
+                                  fov=50.0, width=width, height=height)
+    return np.asarray(jr.render(scaled_scene(s), camera, settings).rgb)
 
 
-@pytest.mark.parametrize("kind", ["lambert", "dielectric"])
-def test_scene_scale_does_not_change_the_image(kind):
-    """The same scene at s = 1e-3, 1, 1e3 in float32, soft shadows: RMSE ≤ 0.005."""
-    ref = render_scaled(1.0, kind, "soft")
+def scale_free_settings(shadows):
+    """Settings with no world unit in them, so one compiled program serves every scale: ε
+    below the float's precision at every scale (the rounding floor decides), a max_distance
+    past anything the rays meet, only point lights (shadow rays end at the light)."""
+    return jr.RenderSettings(hit_epsilon=1e-15, max_distance=1e7, shadows=shadows, max_depth=2,
+                             recursion="scan", backend="jax", aovs=(), max_steps=192)
+
+
+@pytest.mark.parametrize("shadows", ["soft", pytest.param("hard", marks=pytest.mark.slow)])
+def test_scene_scale_does_not_change_the_image(shadows):
+    """The same scene at s = 1e-3, 1, 1e3 in float32, every material kind: RMSE ≤ 0.005.
+    (Before: soft shadows had a step ceiling of 2 world units, RMSE 0.037 at 10³.)"""
+    settings = scale_free_settings(shadows)
+    ref = render_scaled(1.0, settings)
+    assert np.all(np.isfinite(ref)) and ref.std() > 0.05  # a real image
     for s in (1e-3, 1e3):
-        rmse = float(np.sqrt(np.mean((render_scaled(s, kind, "soft") - ref) ** 2)))
-        assert rmse <= 0.005, (kind, s, rmse)
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("shadows", ["hard", "soft"])
-@pytest.mark.parametrize("kind", ["lambert", "cook_torrance", "phong", "mirror", "dielectric"])
-def test_scene_scale_does_not_change_the_image_every_kind(kind, shadows):
-    ref = render_scaled(1.0, kind, shadows)
-    for s in (1e-3, 1e3):
-        rmse = float(np.sqrt(np.mean((render_scaled(s, kind, shadows) - ref) ** 2)))
-        assert rmse <= 0.005, (kind, shadows, s, rmse)
+        rmse = float(np.sqrt(np.mean((render_scaled(s, settings) - ref) ** 2)))
+        assert rmse <= 0.005, (shadows, s, rmse)
