@@ -173,7 +173,8 @@ class RenderSettings:
             "a number > 0 or None",
         )
         need(_is_int(self.max_depth) and 0 <= self.max_depth <= 16, "max_depth", "an integer in [0, 16]")
-        need(_is_num(self.ray_offset) and self.ray_offset > 0, "ray_offset", "a number > 0")
+        need(_is_num(self.ray_offset) and self.ray_offset > 1, "ray_offset",
+             "a number > 1 (the offset must leave the band |f| < ε)")
         need(_is_int(self.spawn_steps) and self.spawn_steps >= 0, "spawn_steps", "an integer ≥ 0")
         need(self.recursion in _RECURSIONS, "recursion", f"one of {_RECURSIONS}")
         need(_is_int(self.spp) and self.spp >= 1, "spp", "an integer ≥ 1")
@@ -220,7 +221,9 @@ def _is_int(x):
 
 
 def _is_num(x):
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x
+    """A finite int or float (inf and NaN are not dials: an infinite epsilon hits at t = 0,
+    an infinite max_distance lets a miss march until its budget runs out)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and abs(x) < float("inf")
 
 
 #: The presets of `RenderSettings.preset`: accuracy/speed dials only.

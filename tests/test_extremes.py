@@ -142,3 +142,60 @@ def test_scene_scale_does_not_change_the_image(shadows):
     for s in (1e-3, 1e3):
         rmse = float(np.sqrt(np.mean((render_scaled(s, settings) - ref) ** 2)))
         assert rmse <= 0.005, (shadows, s, rmse)
+
+
+# --------------------------------------------------------------------------- dial sweep
+
+#: Values past every dial's sensible range that must be refused at construction.
+REFUSED = [
+    ("max_steps", 0), ("hit_epsilon", 0.0), ("hit_epsilon", -1e-4), ("hit_epsilon", float("inf")),
+    ("hit_epsilon", float("nan")), ("pixel_epsilon", -1.0), ("max_distance", 0.0),
+    ("max_distance", float("inf")), ("over_relaxation", 2.0), ("over_relaxation", 0.5),
+    ("newton_steps", -1), ("normal_epsilon", 0.0), ("shadow_steps", 0), ("penumbra", 0.0),
+    ("penumbra", float("inf")), ("shadow_max_distance", -1.0), ("max_depth", 17),
+    ("ray_offset", 1.0), ("ray_offset", 0.5), ("spawn_steps", -1), ("spp", 0), ("seed", 1.5),
+    ("wavelengths", -1), ("dtype", "float16"), ("batch_size", 0), ("devices", -1),
+    ("silhouette_width", 0.0), ("silhouette_width", 17.0), ("max_steps", 1.5),
+]
+
+
+@pytest.mark.parametrize("field,value", REFUSED)
+def test_dials_past_their_range_are_refused_by_name(field, value):
+    with pytest.raises(ValueError, match=rf"RenderSettings\.{field} = "):
+        jr.RenderSettings(**{field: value})
+
+
+def _ball_and_floor():
+    scene = jr.Scene(
+        surface=jr.sdf.Union(jr.sdf.Plane(normal=(0.0, 1.0, 0.0), offset=-1.0, material=0),
+                             jr.sdf.Sphere(radius=1.0, material=1)),
+        materials=[jr.bsdf.Lambert(), jr.bsdf.CookTorrance(distribution=jr.bsdf.GGX(0.2))],
+        lights=[jr.PointLight(position=(2.0, 4.0, -3.0), intensity=(40.0,) * 3)])
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.5, -4.0), target=(0.0, 0.0, 0.0), fov=50.0,
+                                  width=12, height=8)
+    return scene, camera
+
+
+#: Accepted extremes: each renders finite values and (but for budgets) the same hits as the
+#: defaults. The first few run by default, the rest are slow.
+ACCEPTED = [
+    dict(hit_epsilon=1e-30), dict(max_distance=1e30), dict(normal_mode="central", normal_epsilon=1e-12),
+    dict(hit_epsilon=1e-30, dtype="float64"),
+    dict(max_steps=1), dict(newton_steps=0), dict(newton_steps=8), dict(over_relaxation=1.99),
+    dict(penumbra=1e6, shadows="soft"), dict(penumbra=1e-6, shadows="soft"), dict(ray_offset=1.0001),
+    dict(spawn_steps=8), dict(shadow_steps=1), dict(max_depth=0), dict(pixel_epsilon=1e3),
+    dict(silhouette=True, silhouette_width=16.0), dict(shadow_max_distance=1e-6),
+]
+
+
+@pytest.mark.parametrize("dials", [d if i < 3 else pytest.param(d, marks=pytest.mark.slow)
+                                   for i, d in enumerate(ACCEPTED)], ids=str)
+def test_accepted_extremes_render_finite_images_without_dropped_hits(dials):
+    scene, camera = _ball_and_floor()
+    base = jr.RenderSettings(backend="jax", aovs=("coverage",))
+    image = jr.render(scene, camera, base.replace(**dials))
+    assert np.all(np.isfinite(np.asarray(image.rgb)))
+    budget = {"max_steps", "pixel_epsilon", "shadow_max_distance"} & set(dials)
+    if not budget:  # an accuracy dial may not lose a hit that the defaults find
+        ref = jr.render(scene, camera, base)
+        assert np.array_equal(np.asarray(image.coverage) > 0, np.asarray(ref.coverage) > 0), dials
