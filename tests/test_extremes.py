@@ -199,3 +199,34 @@ def test_accepted_extremes_render_finite_images_without_dropped_hits(dials):
     if not budget:  # an accuracy dial may not lose a hit that the defaults find
         ref = jr.render(scene, camera, base)
         assert np.array_equal(np.asarray(image.coverage) > 0, np.asarray(ref.coverage) > 0), dials
+
+
+# --------------------------------------------------------------------------- analytic planes
+
+
+@pytest.mark.parametrize("analytic", [True, False])
+def test_a_floor_reaches_the_horizon(analytic):
+    """Every camera ray that points below the horizon meets the floor y = 0 at the
+    analytic t = −o_y / d_y when planes are intersected analytically (the default), even
+    far past max_distance; sphere-traced only, the floor ends at max_distance."""
+    scene = jr.Scene(surface=jr.sdf.Union(jr.sdf.Plane(normal=(0.0, 1.0, 0.0), offset=0.0),
+                                          jr.sdf.Translate(jr.sdf.Sphere(radius=0.5), offset=(0.0, 0.5, 0.0))),
+                     materials=[jr.bsdf.Lambert()], lights=[jr.DirectionalLight()])
+    camera = jr.PerspectiveCamera(eye=(0.0, 1.0, -4.0), target=(0.0, 1.0, 0.0), fov=40.0,
+                                  width=16, height=12)
+    settings = jr.RenderSettings(max_distance=10.0, analytic_planes=analytic, backend="jax",
+                                 aovs=("depth", "coverage"))
+    image = jr.render(scene, camera, settings)
+    o, d, _ = jax.vmap(jax.vmap(camera.generate_ray))(*jnp.meshgrid(jnp.arange(16) + 0.5,
+                                                                       jnp.arange(12) + 0.5))
+    below = np.asarray(d[..., 1]) < 0
+    covered = np.asarray(image.coverage) > 0
+    assert np.all(np.isfinite(np.asarray(image.rgb)))
+    if analytic:
+        assert np.array_equal(covered, below)
+        t_floor = -np.asarray(o[..., 1]) / np.asarray(d[..., 1])
+        far = below & (t_floor > 10.0) & (np.asarray(image.depth) > 5.0)  # not the sphere
+        assert far.sum() >= 8  # the test sees the floor beyond max_distance
+        np.testing.assert_allclose(np.asarray(image.depth)[far], t_floor[far], rtol=1e-4)
+    else:
+        assert covered.sum() < below.sum()
