@@ -49,7 +49,7 @@ from .heightfield import HeightField
 from .kinds import lookup
 from .lights import shadow_ray
 from .march import SphereTracing, tape
-from .trace import hit_epsilon, sphere_trace, surface_normal
+from .trace import hit_epsilon, intersect_plane, sphere_trace, surface_normal
 from .vecmath import dot, safe_div, to_local
 
 
@@ -185,9 +185,12 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     """intersectScene of the notes: the nearest of the sphere-traced SDF `surface` and
     of every height field (marched by `HeightField.intersect`). One ray."""
     surface = scene.surface
+    planes = analytic_planes(surface) if getattr(settings, "analytic_planes", False) else []
     hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max,
-                       fields=("steps",))
+                       fields=("steps", "inside") if planes else ("steps",))
     t, found, steps = hit.t, hit.hit, hit.steps
+    if planes:
+        t, found = _meet_planes(planes, origin, direction, t, found, hit.inside, settings, t_max)
     p = origin + t * direction
     normal = surface_normal(surface, p, settings)
     material = surface.eval(jax.lax.stop_gradient(p))[1]
@@ -203,6 +206,41 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
         steps = steps + h.steps
     material = jnp.clip(material, 0, len(scene.materials) - 1)
     return SceneHit(t, found, steps, normal, material, which)
+
+
+#: Analytic planes are met up to this many max_distances away: the floor then reaches
+#: within (camera height) / (10⁴ · max_distance) radians of the horizon, far below a
+#: pixel, and p stays far from float overflow.
+PLANE_HORIZON = 1e4
+
+
+def analytic_planes(surface):
+    """The `sdf.Plane`s at the top of the scene's surface (the surface itself, or children
+    of its top-level `Union`): those that `intersect_scene` also meets analytically."""
+    from .sdf import Plane, Union
+
+    if isinstance(surface, Plane):
+        return [surface]
+    if isinstance(surface, Union):
+        return [c for c in surface.children_ if isinstance(c, Plane)]
+    return []
+
+
+def _meet_planes(planes, origin, direction, t, found, inside, settings, t_max):
+    """Ray–plane intersection (notes; `trace.intersect_plane`) for rays that the march let
+    go: escaped at max_distance, or out of budget gliding along the plane. The march never
+    passes a surface, so such a ray meets nothing before the plane's t. Rays that start
+    inside a solid, and dead rays (t_max = 0), are left alone. Differentiable in the
+    plane, the origin and the direction."""
+    limit = jnp.asarray(settings.max_distance if t_max is None else t_max, t.dtype)
+    far = PLANE_HORIZON * settings.max_distance
+    for plane in planes:
+        n = plane.normal / jnp.sqrt(dot(plane.normal, plane.normal))
+        t_p, ok = intersect_plane(origin, direction, n, plane.offset)
+        meet = (~found) & (~inside) & ok & (limit > 0.0) & (t_p < far)
+        t = jnp.where(meet, t_p, t)
+        found = found | meet
+    return t, found
 
 
 def visibility(scene, origin, wi, distance, settings):
@@ -387,8 +425,9 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
     if "reflect" in tree.branches:
         spawns = lookup([m.has_reflection for m in scene.materials], material)
         alive = found & spawns
-        children["reflect"] = Ray(above, reflect(wo, n), cone,
-                                  jnp.where(alive, throughput * colour(c_refl), 0.0), ray.sigma, alive)
+        wr = reflect(wo, n)
+        weight = throughput * colour(c_refl) * _offset_absorption(ray.sigma, above, p, wr)
+        children["reflect"] = Ray(above, wr, cone, jnp.where(alive, weight, 0.0), ray.sigma, alive)
     if "transmit" in tree.branches:
         spawns = lookup([m.has_transmission for m in scene.materials], material)
         wt, valid = refract(wo, n_out, eta)
@@ -397,9 +436,19 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
         # Entering: the medium of the material; leaving: vacuum.
         sigma = jnp.where(entering, colour(inside), 0.0)
         alive = found & spawns & valid
-        weight = jnp.where(alive, throughput * colour(c_trans), 0.0)
-        children["transmit"] = Ray(below, wt, cone, weight, sigma, alive)
+        weight = throughput * colour(c_trans) * _offset_absorption(sigma, below, p, wt)
+        children["transmit"] = Ray(below, wt, cone, jnp.where(alive, weight, 0.0), sigma, alive)
     return children
+
+
+def _offset_absorption(sigma, origin, p, direction):
+    """exp(−σ (origin − p)·d): Beer–Lambert over the part of the segment from the surface
+    point p to a child's offset origin, which the child's own t does not include
+    (|p_hit − p| = t + (origin − p)·d to first order in the offset). Without it, a ray
+    through a slab of thickness L is attenuated over L − 2·offset. No gradient: the
+    offset is a precision device, not geometry."""
+    length = jax.lax.stop_gradient(dot(origin - p, direction))
+    return jnp.exp(-sigma * jnp.maximum(length, 0.0))
 
 
 def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):

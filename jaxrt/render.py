@@ -18,7 +18,8 @@ class Image(eqx.Module):
     depth     [H, W] distance along the ray to the first hit (max_distance on a miss).
     normal    [H, W, 3] world-space unit normal facing the camera (0 on a miss).
     albedo    [H, W, 3] base colour of the material hit (0 on a miss).
-    steps     [H, W] sphere-tracing steps of the primary ray.
+    steps     [H, W] sphere-tracing steps of the primary ray; a ray that ran out of its
+              budget counts max_steps + 1 (steps > max_steps marks it).
     coverage  [H, W] fraction of the pixel's samples that hit a surface.
     Values are averaged over the pixel's samples (box filter). AOVs left out of
     `RenderSettings.aovs` are None.

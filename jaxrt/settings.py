@@ -23,7 +23,11 @@ class RenderSettings:
       pixel_epsilon    hit threshold relative to the pixel footprint: the effective
                        epsilon is hit_epsilon + pixel_epsilon · r(t), r(t) the radius of
                        the pixel cone at distance t (0 switches it off).
-      max_distance     rays that travel this far miss.
+      max_distance     rays that travel this far miss, but for the planes at the top of
+                       the scene's union, which are also intersected analytically
+                       (notes, "ray–plane"; `analytic_planes`, default True): a floor
+                       reaches the horizon (up to 10⁴·max_distance) instead of ending
+                       in a circle of radius max_distance.
       over_relaxation  ω of Keinert et al. 2014 "Enhanced Sphere Tracing" (1 = plain
                        sphere tracing; 1.2–1.8 take longer steps with a safe fall-back).
       newton_steps     Newton polishing steps at a hit (they also carry the implicit-
@@ -139,6 +143,10 @@ class RenderSettings:
     root_solver: str = "newton"
     recursion: str = "unrolled"
     aovs: tuple = AOVS
+    # Planes at the top of the scene's union are also intersected analytically
+    # (integrator.analytic_planes): a floor reaches the horizon instead of ending at
+    # max_distance. False: planes are only sphere-traced, like every other shape.
+    analytic_planes: bool = True
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -173,7 +181,8 @@ class RenderSettings:
             "a number > 0 or None",
         )
         need(_is_int(self.max_depth) and 0 <= self.max_depth <= 16, "max_depth", "an integer in [0, 16]")
-        need(_is_num(self.ray_offset) and self.ray_offset > 0, "ray_offset", "a number > 0")
+        need(_is_num(self.ray_offset) and self.ray_offset > 1, "ray_offset",
+             "a number > 1 (the offset must leave the band |f| < ε)")
         need(_is_int(self.spawn_steps) and self.spawn_steps >= 0, "spawn_steps", "an integer ≥ 0")
         need(self.recursion in _RECURSIONS, "recursion", f"one of {_RECURSIONS}")
         need(_is_int(self.spp) and self.spp >= 1, "spp", "an integer ≥ 1")
@@ -194,6 +203,7 @@ class RenderSettings:
             "a number in (0, 16] (pixels)",
         )
         need(self.root_solver in _ROOT_SOLVERS, "root_solver", f"one of {_ROOT_SOLVERS}")
+        need(isinstance(self.analytic_planes, bool), "analytic_planes", "true or false")
 
     def replace(self, **changes):
         """A copy with some dials changed (validated)."""
@@ -220,7 +230,9 @@ def _is_int(x):
 
 
 def _is_num(x):
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x
+    """A finite int or float (inf and NaN are not dials: an infinite epsilon hits at t = 0,
+    an infinite max_distance lets a miss march until its budget runs out)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and abs(x) < float("inf")
 
 
 #: The presets of `RenderSettings.preset`: accuracy/speed dials only.

@@ -82,12 +82,16 @@ def test_sphere_float32_default_settings_including_near_grazing():
         jnp.asarray(o), jnp.asarray(d), jnp.asarray(c), r)
     np.testing.assert_allclose(np.asarray(t_jax), t_ref, rtol=1e-12)
     # Rays that pass more than ε from the sphere miss; between 0.9999 R and the tangent
-    # they either hit accurately or run out of budget (and say so).
+    # they either hit accurately, or (at the tangent, where a budget that runs out is
+    # finished by the secant of `march.sphere`) hit within the ε band, or run out of
+    # budget (and say so).
     o2, d2 = grazing_rays(5.0, [1.0002, 1.001, 1.1, 0.99995, 0.99999, 1.0])
     h2 = run(sdf.Sphere(r), o2, d2, DEFAULT, jnp.float32)
     assert not h2.hit[:3].any()
     t2, _ = np_sphere_hit(o2, d2, np.zeros(3), r)
-    ok = h2.exhausted[3:] | (h2.hit[3:] & (np.abs(h2.t[3:] - t2[3:]) / t2[3:] < 1e-4))
+    in_band = np.abs(np.linalg.norm(o2 + h2.t[:, None] * d2, axis=1) - r) <= 2 * DEFAULT.hit_epsilon
+    accurate = np.abs(h2.t - t2) / t2 < 1e-4
+    ok = h2.exhausted[3:] | (h2.hit[3:] & (accurate[3:] | (in_band[3:] & (np.arange(3) == 2))))
     assert ok.all()
     assert np.all(np.isfinite(h2.t)) and np.all(h2.t[~h2.hit] == DEFAULT.max_distance)
 

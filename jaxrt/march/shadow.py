@@ -20,9 +20,13 @@ import jax.numpy as jnp
 
 from .options import check_options
 from .search import golden_section
+from .sphere import rounding_floor
 
-#: Largest step of a soft-shadow march (world units): thin occluders are sampled.
-MAX_STEP = 2.0
+#: Largest step of a soft-shadow march, as a fraction of the ray's length (to its light,
+#: or to the shadow distance): the penumbra is sampled at least every 1/16 of the way,
+#: whatever the scene's units (it was 2 world units, so a scene scaled by 10³ had other
+#: soft shadows). A ray in open space reaches its light in 16 such steps.
+MAX_STEP_FRACTION = 1.0 / 16.0
 
 #: Golden-section evaluations that refine the sampled penumbra minimum between the
 #: samples around it: the bracket shrinks to 0.618⁸ ≈ 2 % of its width. Without them
@@ -40,8 +44,11 @@ MIN_VISIBILITY = 1e-3
 class SoftShadow:
     """Options of a soft-shadow march.
 
-    max_steps    step budget (`RenderSettings.shadow_steps`).
-    hit_epsilon  the ray is blocked where f < hit_epsilon; also the smallest step.
+    max_steps    step budget (`RenderSettings.shadow_steps`). A ray that spends it before
+                 reaching its light is blocked: it has not shown the light visible.
+    hit_epsilon  the ray is blocked where f < max(hit_epsilon, the rounding floor of f
+                 at the sample, `jaxrt.march.sphere.rounding_floor`); that threshold is
+                 also the smallest step.
     penumbra     k: larger is sharper.
     refine_steps golden-section evaluations that refine the sampled minimum (0: Quilez's
                  sampled minimum as it is).
@@ -76,8 +83,9 @@ def march(sdf, origin, wi, t_max, options):
     # Inside a solid the distance to its surface is −f.
     sign = jnp.where(sdf(origin) < 0.0, -1.0, 1.0).astype(dtype)
     # Steps are clamped to [eps, max_step]: a floor so that grazing rays progress and a
-    # ceiling so that thin occluders are sampled (both as in Quilez's soft shadows).
-    max_step = jnp.asarray(MAX_STEP, dtype)
+    # ceiling so that thin occluders are sampled (both as in Quilez's soft shadows), the
+    # floor never below the rounding floor of f, the ceiling relative to the ray's length.
+    max_step = jnp.asarray(MAX_STEP_FRACTION, dtype) * t_max
 
     def cond(s):
         t, vis, i = s[:3]
@@ -85,22 +93,26 @@ def march(sdf, origin, wi, t_max, options):
 
     def body(s):
         t, vis, i, t_prev, t_best, lo, hi = s
-        d = sign * sdf(origin + t * wi) * inv_lipschitz
+        x = origin + t * wi
+        floor = jnp.maximum(eps, rounding_floor(x))
+        d = sign * sdf(x) * inv_lipschitz
         h = jnp.clip(k * d / t, 0.0, 1.0)  # t ≥ eps > 0: starts at eps, steps ≥ eps
         value = h * h * (3.0 - 2.0 * h)
-        t_next = t + jnp.clip(d, eps, max_step)
+        t_next = t + jnp.clip(d, floor, jnp.maximum(max_step, floor))
         lower = value < vis  # the minimum so far, bracketed by the samples around it
         t_best, lo, hi = (jnp.where(lower, t, t_best), jnp.where(lower, t_prev, lo),
                           jnp.where(lower, t_next, hi))
         vis = jnp.minimum(vis, value)
-        vis = jnp.where(d < eps, 0.0, vis)
+        vis = jnp.where(d < floor, 0.0, vis)
         return t_next, vis, i + 1, t, t_best, lo, hi
 
     zero = jnp.zeros((), dtype)
-    t0 = jnp.asarray(eps, dtype)
+    t0 = jnp.maximum(jnp.asarray(eps, dtype), rounding_floor(origin))
     init = (t0, jnp.ones((), dtype), jnp.zeros((), jnp.int32), t0, zero, t0, t0)
-    _, vis, _, _, t_best, lo, hi = jax.lax.while_loop(cond, body, init)
-    blocked = vis <= 0.0
+    t_end, vis, _, _, t_best, lo, hi = jax.lax.while_loop(cond, body, init)
+    # Out of budget before the light (and not already dark): not shown visible, blocked.
+    ran_out = (t_end < t_max) & (vis > MIN_VISIBILITY)
+    blocked = (vis <= 0.0) | ran_out
     if options.refine_steps:
         # The sampled minimum refined by golden section on k·f/t in [lo, hi] (the samples
         # around it): the gradient (`jaxrt.lights.penumbra`) is then that of the minimum

@@ -54,9 +54,34 @@ class SphereTracing:
         return dataclasses.replace(self, **changes)
 
 
+#: The rounding floor of a distance evaluated at p, in ulps of max|pᵢ|: the coordinates
+#: of p = o + t d are rounded to an ulp of max|pᵢ| and every primitive then subtracts
+#: numbers of that size, so f(p) is uncertain by a few such ulps (the distance bound f/L
+#: of a deformed shape by as many: its coordinates are stretched by at most L). A march
+#: that asks for |f|/L below this cannot get there; it would only run out of budget.
+#: 8 ulps: the same margin as the rounding term of `integrator.spawn_offset`, which
+#: therefore always starts secondary rays outside the band.
+ROUNDING_ULPS = 8.0
+
+
+def rounding_floor(p):
+    """ROUNDING_ULPS · machine epsilon · max|pᵢ|: what a distance at p cannot resolve."""
+    return ROUNDING_ULPS * jnp.finfo(p.dtype).eps * jnp.max(jnp.abs(p))
+
+
 def hit_epsilon(settings, t, cone):
-    """ε(t) = hit_epsilon + pixel_epsilon · r(t), with r(t) = cone[0] + cone[1] · t."""
+    """ε(t) = hit_epsilon + pixel_epsilon · r(t), with r(t) = cone[0] + cone[1] · t.
+
+    The threshold a march uses at p is `max(ε(t), rounding_floor(p))` (`threshold`)."""
     return settings.hit_epsilon + settings.pixel_epsilon * (cone[0] + cone[1] * t)
+
+
+def threshold(settings, t, cone, p):
+    """The hit threshold at the sample p = o + t d: ε(t), but never below the rounding
+    floor of f at p, so that an epsilon below the float's precision (hit_epsilon = 1e-8
+    in float32) or a scene modelled in large units (a sphere of radius 1000 seen from
+    4000) still converges instead of running out of steps."""
+    return jnp.maximum(hit_epsilon(settings, t, cone), rounding_floor(p))
 
 
 def march(sdf, origin, direction, settings, cone, t_max):
@@ -94,7 +119,7 @@ def march(sdf, origin, direction, settings, cone, t_max):
 
     def body(s):
         t, r = s["t"], s["r"]
-        eps = hit_epsilon(settings, t, cone)
+        eps = threshold(settings, t, cone, origin + t * direction)
         new = dict(s)
         fail = None  # ω = 1: no step can fail, and the selects below vanish at trace time
         if relax:
@@ -140,8 +165,23 @@ def march(sdf, origin, direction, settings, cone, t_max):
 
     s = jax.lax.while_loop(cond, body, init)
     t, r, done = s["t"], s["r"], s["done"]
-    # A ray whose budget ran out while already within epsilon still counts as a hit.
-    hit = s["hit"] | ((~done) & (r < hit_epsilon(settings, t, cone)))
+    # A ray whose budget ran out while already within the threshold still counts as a hit.
+    hit = s["hit"] | ((~done) & (r < threshold(settings, t, cone, origin + t * direction)))
+    # One still approaching a surface is finished: while sphere tracing converges on a
+    # surface its distances fall geometrically, r_{k+1} = q r_k, and the secant through
+    # the last two samples lands where the rest of the series would, t + r / (1 − q)
+    # (grazing rays, with q → 1, are the ones that run out). It is a hit if the distance
+    # there is within the threshold (or below the surface: the ray crossed it; the
+    # Newton polish of `trace.polish_root` then settles it).
+    t_prev, r_prev = s["last_t"], s["last_r"]
+    approaching = (~done) & (~hit) & (r < r_prev) & (t > t_prev)
+    t_star = t + safe_div(r * (t - t_prev), jnp.where(approaching, r_prev - r, 1.0))
+    t_star = jnp.where(approaching, jnp.minimum(t_star, t_max), t)
+    x_star = origin + t_star * direction
+    finished = approaching & (t_star < t_max) & (
+        sign * sdf(x_star) * inv_lipschitz < threshold(settings, t_star, cone, x_star))
+    hit = hit | finished
+    t = jnp.where(finished, t_star, t)
     exhausted = (~done) & (~hit)
     # A ray that did not hit ends with a near miss: the smaller of its last two samples
     # (a budget that ran out leaves one sample that the loop did not examine).
@@ -153,7 +193,9 @@ def march(sdf, origin, direction, settings, cone, t_max):
     lo = jnp.where(use_final, s["last_t"], jnp.where(use_last, s["last_lo"], s["best_lo"]))
     hi = jnp.where(use_final, t, jnp.where(use_last, t, s["best_hi"]))
     return dict(
-        t=jnp.where(hit, t, jnp.asarray(t_max, dtype)), hit=hit, steps=s["steps"],
+        # steps = max_steps + 1 marks a ray that ran out of budget (the `steps` AOV).
+        t=jnp.where(hit, t, jnp.asarray(t_max, dtype)), hit=hit,
+        steps=s["steps"] + exhausted.astype(jnp.int32),
         inside=start < 0.0, exhausted=exhausted, closest_t=best_t,
         closest_d=best_r * lipschitz * sign, closest_bracket=jnp.stack([lo, hi]),
     )
