@@ -229,10 +229,11 @@ def run(study, cfg, out, fresh=False):
     loss_truth = float(jr.fit.fit(loss, study.truth, optimiser, max_steps=0,
                                   transforms=study.transforms).loss)
     err = element_errors(fitted, study.truth, study.floors)
-    metrics = {"max_parameter_error": float(err.max())}
+    metrics = {"max_parameter_error": float(err.max()), "median_parameter_error": float(np.median(err))}
     if study.metrics is not None:
         metrics.update({k: float(v) for k, v in study.metrics(fitted, study.truth).items()})
-    start_metrics = {"max_parameter_error": float(element_errors(start, study.truth, study.floors).max())}
+    err0 = element_errors(start, study.truth, study.floors)
+    start_metrics = {"max_parameter_error": float(err0.max()), "median_parameter_error": float(np.median(err0))}
     if study.metrics is not None:
         start_metrics.update({k: float(v) for k, v in study.metrics(start, study.truth).items()})
     met = {k: bool(metrics[k] <= v) for k, v in cfg["targets"].items() if k in metrics}
