@@ -229,6 +229,8 @@ def run(study, cfg, out, fresh=False):
     loss_truth = float(jr.fit.fit(loss, study.truth, optimiser, max_steps=0,
                                   transforms=study.transforms).loss)
     err = element_errors(fitted, study.truth, study.floors)
+    if errors[-1][0] != result.steps:  # a resumed run's last point
+        errors.append((result.steps, err))
     metrics = {"max_parameter_error": float(err.max()), "median_parameter_error": float(np.median(err))}
     if study.metrics is not None:
         metrics.update({k: float(v) for k, v in study.metrics(fitted, study.truth).items()})
@@ -251,7 +253,8 @@ def run(study, cfg, out, fresh=False):
     names = element_names(study.truth)
     curves(out / "curves.png", result.history, errors, names, study.name)
     rows = [{"name": n, "truth": float(t), "start": float(s), "fit": float(v), "error": float(e)}
-            for n, t, s, v, e in zip(names, _flat(study.truth), _flat(start), _flat(fitted), err)]
+            for n, t, s, v, e in zip(names, _flat(study.truth, study.truth), _flat(start, study.truth),
+                                     _flat(fitted, study.truth), err)]
     results = {
         "study": study.name, "quick": cfg["quick"], "size": r["size"], "views": int(targets.shape[0]),
         "steps": int(result.steps), "stopped": result.result, "loss_start": float(result.history[0]),
@@ -269,8 +272,8 @@ def run(study, cfg, out, fresh=False):
     return results
 
 
-def _flat(params):
-    return np.concatenate([np.asarray(v, float).ravel() for v in params.values()])
+def _flat(params, order):
+    return np.concatenate([np.asarray(params[k], float).ravel() for k in order])
 
 
 # --------------------------------------------------------------------------- outputs
