@@ -183,13 +183,21 @@ def _is_transform(x):
     return x is None or isinstance(x, Transform)
 
 
+def _prefix(tree, params):
+    """`tree` with the keys of a dict of parameters that a dict `tree` leaves out as None."""
+    if isinstance(tree, dict) and isinstance(params, dict):
+        return {k: tree.get(k) for k in params}
+    return tree
+
+
 def constrain(raw, transforms):
     """Unconstrained values → legal ones. `transforms` is a prefix of the parameter
-    tree: a `Transform` (or None for identity) applies to every leaf under it."""
+    tree: a `Transform` (or None for identity) applies to every leaf under it (a dict
+    may leave out keys of a dict of parameters: identity)."""
     if transforms is None:
         return raw
     return jax.tree.map(lambda t, sub: sub if t is None else jax.tree.map(t, sub),
-                        transforms, raw, is_leaf=_is_transform)
+                        _prefix(transforms, raw), raw, is_leaf=_is_transform)
 
 
 def unconstrain(params, transforms):
@@ -197,7 +205,7 @@ def unconstrain(params, transforms):
     if transforms is None:
         return params
     return jax.tree.map(lambda t, sub: sub if t is None else jax.tree.map(t.inverse, sub),
-                        transforms, params, is_leaf=_is_transform)
+                        _prefix(transforms, params), params, is_leaf=_is_transform)
 
 
 # --------------------------------------------------------------------------- optimisers
@@ -213,11 +221,8 @@ def scale_by_leaf(scales):
 
     def update(updates, state, params=None):
         del params
-        tree = scales
-        if isinstance(scales, dict) and isinstance(updates, dict):  # missing keys: 1
-            tree = {k: scales.get(k) for k in updates}
         out = jax.tree.map(lambda s, sub: sub if s is None else jax.tree.map(lambda u: s * u, sub),
-                           tree, updates, is_leaf=lambda x: x is None)
+                           _prefix(scales, updates), updates, is_leaf=lambda x: x is None)
         return out, state
 
     return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
