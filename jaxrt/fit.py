@@ -183,13 +183,21 @@ def _is_transform(x):
     return x is None or isinstance(x, Transform)
 
 
+def _prefix(tree, params):
+    """`tree` with the keys of a dict of parameters that a dict `tree` leaves out as None."""
+    if isinstance(tree, dict) and isinstance(params, dict):
+        return {k: tree.get(k) for k in params}
+    return tree
+
+
 def constrain(raw, transforms):
     """Unconstrained values → legal ones. `transforms` is a prefix of the parameter
-    tree: a `Transform` (or None for identity) applies to every leaf under it."""
+    tree: a `Transform` (or None for identity) applies to every leaf under it (a dict
+    may leave out keys of a dict of parameters: identity)."""
     if transforms is None:
         return raw
     return jax.tree.map(lambda t, sub: sub if t is None else jax.tree.map(t, sub),
-                        transforms, raw, is_leaf=_is_transform)
+                        _prefix(transforms, raw), raw, is_leaf=_is_transform)
 
 
 def unconstrain(params, transforms):
@@ -197,7 +205,7 @@ def unconstrain(params, transforms):
     if transforms is None:
         return params
     return jax.tree.map(lambda t, sub: sub if t is None else jax.tree.map(t.inverse, sub),
-                        transforms, params, is_leaf=_is_transform)
+                        _prefix(transforms, params), params, is_leaf=_is_transform)
 
 
 # --------------------------------------------------------------------------- optimisers
@@ -205,7 +213,8 @@ def unconstrain(params, transforms):
 
 def scale_by_leaf(scales):
     """An optax transformation multiplying each leaf's update by its scale: `scales` is
-    a prefix of the parameter tree (a number applies to every leaf under it, None = 1).
+    a prefix of the parameter tree (a number applies to every leaf under it, None = 1;
+    a dict may leave out keys of a dict of parameters, which then have scale 1).
     After Adam (whose steps are about the learning rate in size whatever the gradient)
     these are per-group learning rates: `optax.chain(optax.adam(lr), scale_by_leaf(s))`
     moves group g by about lr · s_g per step."""
@@ -213,7 +222,7 @@ def scale_by_leaf(scales):
     def update(updates, state, params=None):
         del params
         out = jax.tree.map(lambda s, sub: sub if s is None else jax.tree.map(lambda u: s * u, sub),
-                           scales, updates, is_leaf=lambda x: x is None)
+                           _prefix(scales, updates), updates, is_leaf=lambda x: x is None)
         return out, state
 
     return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
@@ -370,10 +379,16 @@ def _optax_step(loss_fn, transforms, optimiser, raw, state, args):
     return loss, optax.apply_updates(raw, updates), state
 
 
+def _strong(tree):
+    """The tree with weakly typed arrays (from Python numbers) made strongly typed, so
+    that the compiled step sees the same types before and after an update (one compile)."""
+    return jax.tree.map(lambda x: jnp.array(x, dtype=jnp.result_type(x)) if eqx.is_array(x) else x, tree)
+
+
 def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, callback, progress,
                checkpoint, checkpoint_every):
-    raw = unconstrain(params, transforms)
-    state = optimiser.init(raw)
+    raw = _strong(unconstrain(params, transforms))
+    state = _strong(optimiser.init(raw))
     step, history = 0, []
     if checkpoint is not None and os.path.exists(checkpoint):
         raw, state, step, history = load_checkpoint(checkpoint, (raw, state))
@@ -413,7 +428,8 @@ def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, ca
         if bar is not None:
             bar.close()
     value = constrain(raw, transforms)
-    loss = _loss(loss_fn, transforms, raw, args)
+    # the final loss from the compiled step (its update discarded): no second program
+    loss = _optax_step(loss_fn, transforms, optimiser, raw, state, args)[0]
     history = history[:step] + [float(loss)]
     if checkpoint is not None:
         save_checkpoint(checkpoint, (raw, state), step, history[:step])
