@@ -91,10 +91,11 @@ SDF_OR_INDEX = (sdf.SDF,)
 _TOP_KEYS = {"camera", "settings", "materials", "lights", "surface", "background", "heightfields"}
 
 
-def load(path, *, width=None, height=None, spp=None):
+def load(path, *, width=None, height=None, spp=None, settings=None):
     """Load a scene file. Returns `(scene, camera, settings)`.
 
-    `width`, `height` and `spp` override the file's values (command-line use).
+    `width`, `height` and `spp` override the file's values (command-line use);
+    `settings`, a {field: value} table like the file's [settings], overrides its fields.
     Raises `ConfigError` naming the file, the key path and what was expected.
     """
     path = Path(path)
@@ -106,7 +107,16 @@ def load(path, *, width=None, height=None, spp=None):
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: malformed TOML: {e}") from None
+    if settings:
+        table = doc.get("settings", {})
+        doc["settings"] = {**table, **settings} if isinstance(table, dict) else table
     return _Loader(str(path), path.parent).load(doc, width=width, height=height, spp=spp)
+
+
+def check_settings(table, name="<settings>"):
+    """`RenderSettings` from a [settings]-like table, checked as a file's are; `name`
+    stands for the file in messages (`--set: settings.max_steps = 0, expected ...`)."""
+    return _Loader(name, Path.cwd()).settings(table, None)
 
 
 def loads(text, name="<string>", **overrides):

@@ -43,9 +43,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .bsdf.dispatch import dispatch
 from .bsdf.scattering import reflect, refract
 from .heightfield import HeightField
+from .kinds import lookup
 from .lights import shadow_ray
+from .march import SphereTracing, tape
 from .trace import hit_epsilon, sphere_trace, surface_normal
 from .vecmath import dot, safe_div, to_local
 
@@ -132,16 +135,15 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
     wo_local = to_local(wo, n)
     origin = p + spawn_offset(p, settings) * n if origin is None else origin
     # ambient() may come in the default float dtype (Material's zeros): cast to p's.
-    radiance = colour(select([m.ambient().astype(p.dtype) for m in scene.materials], material))
-    diffuse = [m for m in scene.materials if m.has_diffuse]
-    if not diffuse:
+    radiance = colour(dispatch(scene.materials, material, lambda m: m.ambient().astype(p.dtype)))
+    if not scene.flags("has_diffuse"):
         return radiance
-    index = _index_table(scene.materials, lambda m: m.has_diffuse, material)
     for light in scene.lights:
         wi, dist, irradiance = light.illuminate(p)
         cos_i = dot(wi, n)
         wi_local = to_local(wi, n)
-        f = select([m.eval(wo_local, wi_local) for m in diffuse] + [jnp.zeros(3, p.dtype)], index)
+        f = dispatch(scene.materials, material, lambda m: m.eval(wo_local, wi_local),
+                     jnp.zeros(3, p.dtype), lambda m: m.has_diffuse)
         lit = active & (cos_i > 0.0)
         dist = jnp.where(lit, dist, 0.0)
         visible = visibility(scene, origin, wi, dist, settings)
@@ -153,28 +155,10 @@ def _rgb(x):
     return x
 
 
-def _index_table(materials, predicate, material):
-    """Position of `material` among the materials with `predicate`, or their count if
-    it has not (the slot of a default appended to their list)."""
-    table, k = [], 0
-    count = sum(bool(predicate(m)) for m in materials)
-    for m in materials:
-        table.append(k if predicate(m) else count)
-        k += int(bool(predicate(m)))
-    if len(set(table)) == 1:
-        return table[0]
-    return select([jnp.int32(k) for k in table], material)
-
-
 def _select_material(materials, predicate, fn, default, material):
     """fn(m) for the material with index `material` if predicate(m), else `default`;
-    fn is evaluated only for the materials with the predicate (a static filter)."""
-    chosen = [fn(m) for m in materials if predicate(m)]
-    if not chosen:
-        return default
-    values = chosen + [default]
-    index = _index_table(materials, predicate, material)
-    return jax.tree_util.tree_map(lambda *xs: select(list(xs), index), *values)
+    fn is evaluated once per kind of material with the predicate (`bsdf.dispatch`)."""
+    return dispatch(materials, material, fn, default, predicate)
 
 
 class SceneHit(NamedTuple):
@@ -201,7 +185,8 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     """intersectScene of the notes: the nearest of the sphere-traced SDF `surface` and
     of every height field (marched by `HeightField.intersect`). One ray."""
     surface = scene.surface
-    hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max)
+    hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max,
+                       fields=("steps",))
     t, found, steps = hit.t, hit.hit, hit.steps
     p = origin + t * direction
     normal = surface_normal(surface, p, settings)
@@ -228,7 +213,7 @@ def visibility(scene, origin, wi, distance, settings):
     if settings.shadows == "none" or not scene.heightfields:
         return visible
     t_max = jnp.minimum(distance, settings.shadow_max_distance or settings.max_distance)
-    quick = settings.replace(newton_steps=0)
+    quick = SphereTracing.of(settings, newton_steps=0)
     for field in scene.heightfields:
         # Only whether it crosses: no interpolation or refinement of the crossing.
         field = HeightField(field.height, field.material, field.max_steps, field.min_step,
@@ -367,12 +352,12 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
         local = direct_lighting(scene, p, n, wo, material, settings, colour, active=found,
                                 origin=above)
     else:
-        local = colour(select([m.ambient().astype(dtype) for m in scene.materials], material))
+        local = colour(dispatch(scene.materials, material, lambda m: m.ambient().astype(dtype)))
     radiance = jnp.where(found, local, jnp.where(ray.alive, colour(scene.background), 0.0))
     # Beer–Lambert along the segment (σ = 0 outside any medium).
     throughput = ray.weight * jnp.exp(-ray.sigma * hit.t)
 
-    albedo = select([m.base_color() for m in scene.materials], material)
+    albedo = dispatch(scene.materials, material, lambda m: m.base_color())
     zero3 = jnp.zeros(3, dtype)
     aovs = {
         "depth": hit.t,
@@ -398,17 +383,14 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
         scene.materials, specular, lambda m: m.specular(dot(n_out, wo), wavelength),
         (zeros, zeros, jnp.ones((), dtype)), material)
     cone = jnp.stack([ray.cone[0] + ray.cone[1] * hit.t, ray.cone[1]])
-    yes, no = jnp.ones((), bool), jnp.zeros((), bool)
     children = {}
     if "reflect" in tree.branches:
-        spawns = _select_material(scene.materials, lambda m: m.has_reflection,
-                                  lambda m: yes, no, material)
+        spawns = lookup([m.has_reflection for m in scene.materials], material)
         alive = found & spawns
         children["reflect"] = Ray(above, reflect(wo, n), cone,
                                   jnp.where(alive, throughput * colour(c_refl), 0.0), ray.sigma, alive)
     if "transmit" in tree.branches:
-        spawns = _select_material(scene.materials, lambda m: m.has_transmission,
-                                  lambda m: yes, no, material)
+        spawns = lookup([m.has_transmission for m in scene.materials], material)
         wt, valid = refract(wo, n_out, eta)
         inside = _select_material(scene.materials, lambda m: m.has_transmission,
                                   lambda m: getattr(m, "absorption", zeros), zeros, material)
@@ -435,7 +417,7 @@ def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels
         def shade(ray, spawn=spawn):
             return shade_ray(scene, ray, settings, tree, colour, wavelength, spawn)
 
-        out = jax.vmap(shade)(rays)
+        out = tape.vmap(shade)(rays)
         levels.append(jnp.sum(out.radiance, axis=0))
         if level == 0:
             aovs = jax.tree_util.tree_map(lambda x: x[0], out.aovs)
@@ -471,7 +453,8 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     def shade(ray):
         return shade_ray(scene, ray, settings, tree, colour, wavelength, True)
 
-    aov_shapes = jax.eval_shape(lambda r: shade(r).aovs, root)
+    with tape.off():  # an abstract evaluation: its marches are not the program's
+        aov_shapes = jax.eval_shape(lambda r: shade(r).aovs, root)
     aovs = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes)
     levels = jnp.zeros((len(sizes), channels), origin.dtype)
 
@@ -487,7 +470,7 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
             buffer, *children)
         return (buffer, levels, aovs), None
 
-    (_, levels, aovs), _ = jax.lax.scan(step, (buffer, levels, aovs), jnp.arange(slots))
+    (_, levels, aovs), _ = tape.scan(step, (buffer, levels, aovs), jnp.arange(slots))
     return levels, aovs
 
 
@@ -541,7 +524,7 @@ def _trace_spectral(scene, origin, direction, cone, settings, tree):
 
         return _trace_tree(scene, origin, direction, cone, settings, tree, colour, 1, lam)
 
-    values, aovs = jax.vmap(one)(lambdas)  # [N, depth + 1, 1]
+    values, aovs = tape.vmap(one)(lambdas)  # [N, depth + 1, 1]
     to_rgb = spectral.spectral_rgb_matrix(lambdas).astype(dtype)  # [3, N]
     levels = values[..., 0].T @ to_rgb.T  # [depth + 1, 3]
     return levels, jax.tree_util.tree_map(lambda x: x[0], aovs)

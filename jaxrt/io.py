@@ -8,8 +8,11 @@
 
 Every writer writes a temporary file in the target's folder and renames it over the
 target (`os.replace`, atomic on POSIX), so an interrupted or failed write leaves either
-the old file or no file, never a truncated one. Every reader raises `JaxrtIOError` (a
-`ValueError`) naming the file, what it found and what it expected.
+the old file or no file, never a truncated one. `write_render` writes a render's EXR and
+PNG all or nothing: both go to temporary names and are renamed only when both were
+written. `check_writable` tells, before any work, whether a file can be created at a
+path. Every reader and writer raises `JaxrtIOError` (a `ValueError`) naming the file,
+what it found and what it expected.
 """
 
 from __future__ import annotations
@@ -73,6 +76,95 @@ def _atomic_write(path, write: Callable[[str], None]) -> None:
             os.remove(tmp)
         except FileNotFoundError:
             pass
+        raise
+
+
+def _existing_folder(path) -> str:
+    """The nearest folder of `path` that exists (its parent, or an ancestor of it)."""
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    while not os.path.exists(folder):
+        folder = os.path.dirname(folder)
+    return folder
+
+
+def check_writable(path) -> None:
+    """Raise `JaxrtIOError` unless a file can be written at `path` now.
+
+    `path` must not be a folder; its nearest existing ancestor must be a folder in which
+    a file can be created (tried: a hidden temporary file is created and removed, so the
+    answer holds for root, read-only mounts and ACLs alike). Missing folders below it
+    would be created by the writers.
+    """
+    spath = os.fspath(path)
+    if os.path.isdir(spath):
+        raise JaxrtIOError(f"{spath}: is a folder, expected a file name to write")
+    folder = _existing_folder(spath)
+    if not os.path.isdir(folder):
+        raise JaxrtIOError(f"{spath}: cannot write, {folder} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".jaxrt-probe.", suffix=".tmp")
+    except OSError as e:
+        raise JaxrtIOError(f"{spath}: cannot write in {folder} ({e.strerror or e})") from None
+    os.close(fd)
+    os.remove(probe)
+
+
+def write_render(exr_path, png_path, image, exposure: float = 0.0) -> None:
+    """Write a render's EXR (`write_exr`, with its AOVs) and PNG preview (`write_png`),
+    all or nothing.
+
+    Both are written to hidden temporary names beside their targets and renamed only when
+    both were written; on any failure (an `OSError`, a `JaxrtIOError`, an interrupt) the
+    temporary files, a target already renamed and the folders this call created are
+    removed again, and the error is raised as a `JaxrtIOError` naming the file. (A target
+    that existed before is replaced only when both new files are in place.)
+    """
+    targets = [os.fspath(exr_path), os.fspath(png_path)]
+    for target in targets:
+        check_writable(target)
+    created, temps, done = [], [], []
+    current = targets[0]
+    try:
+        for target in targets:
+            current = target
+            folder = os.path.dirname(os.path.abspath(target))
+            missing = []
+            while not os.path.exists(folder):
+                missing.append(folder)
+                folder = os.path.dirname(folder)
+            for f in reversed(missing):
+                os.mkdir(f)
+                created.append(f)
+            fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(target)),
+                                       prefix=f".{os.path.basename(target)}.", suffix=".tmp")
+            os.close(fd)
+            temps.append(tmp)
+        current = targets[0]
+        write_exr(temps[0], image)
+        current = targets[1]
+        write_png(temps[1], getattr(image, "rgb", image), exposure=exposure)
+        for tmp, target in zip(temps, targets):
+            current = target
+            os.replace(tmp, target)
+            done.append(target)
+    except BaseException as e:
+        for f in temps + done:
+            try:
+                os.remove(f)
+            except OSError:
+                pass
+        for f in reversed(created):
+            try:
+                os.rmdir(f)
+            except OSError:
+                pass
+        if isinstance(e, JaxrtIOError):
+            message = str(e)
+            for tmp, target in zip(temps, targets):
+                message = message.replace(tmp, target)
+            raise JaxrtIOError(message) from None
+        if isinstance(e, OSError):
+            raise JaxrtIOError(f"{current}: cannot write ({e.strerror or e})") from None
         raise
 
 

@@ -13,8 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .march import tape
+from .march.shadow import SoftShadow, march as soft_shadow_march
+from .march.sphere import SphereTracing
 from .sdf.base import as_float, check, non_negative
-from .vecmath import dot, normalize, safe_div, safe_norm
+from .vecmath import dot, normalize, safe_div, safe_norm, stop_gradient
 
 
 class PointLight(eqx.Module):
@@ -57,51 +60,50 @@ class DirectionalLight(eqx.Module):
 def shadow_ray(sdf, origin, wi, distance, settings):
     """Visibility in [0, 1] of a light at `distance` along `wi` from `origin`.
 
-    "hard": 0 if a sphere-traced ray hits anything before the light, else 1.
+    "hard": 0 if a sphere-traced ray hits anything before the light, else 1 (no
+    gradient: a step).
     "soft": Quilez's penumbra estimate min over the march of smoothstep(k · f(t) / t),
-    with k = settings.penumbra (0 once the ray touches a surface). A shadow ray that
-    starts inside a solid (the shaded point is seen from inside it) marches on |f|,
-    as `sphere_trace` does: it is blocked where it leaves the solid.
-    "none": 1. The loop is bounded by `settings.shadow_steps` and not differentiated.
+    with k = settings.penumbra (0 once the ray touches a surface), evaluated at the
+    march's minimiser (`penumbra`): differentiable in the occluder, the shaded point
+    and the light direction (envelope theorem, `jaxrt.march.shadow`). A shadow ray that
+    starts inside a solid (the shaded point is seen from inside it) marches on |f|, as
+    `sphere_trace` does: it is blocked where it leaves the solid.
+    "none": 1. The loops are bounded by `settings.shadow_steps` and not differentiated.
     """
-    from .trace import sphere_trace, stop_gradient
+    from .trace import sphere_trace
 
     if settings.shadows == "none":
         return jnp.ones((), origin.dtype)
     t_max = settings.shadow_max_distance or settings.max_distance
     t_max = jnp.minimum(distance, t_max)
     if settings.shadows == "hard":
-        steps = settings.replace(max_steps=settings.shadow_steps, over_relaxation=1.0,
-                                 newton_steps=0, pixel_epsilon=0.0)
-        hit = sphere_trace(sdf, origin, wi, steps, t_max=t_max).hit
+        options = SphereTracing(max_steps=settings.shadow_steps, hit_epsilon=settings.hit_epsilon,
+                                max_distance=settings.max_distance, newton_steps=0)
+        hit = sphere_trace(sdf, origin, wi, options, t_max=t_max, fields=()).hit
         return jnp.where(hit, 0.0, 1.0).astype(origin.dtype)
-    return _soft_shadow(stop_gradient(sdf), jax.lax.stop_gradient(origin),
-                        jax.lax.stop_gradient(wi), jax.lax.stop_gradient(t_max), settings)
+    options = SoftShadow.of(settings)
+    found = tape.march(lambda *a: soft_shadow_march(*a, options), stop_gradient(sdf),
+                       stop_gradient(origin), stop_gradient(wi), stop_gradient(t_max))
+    return penumbra(sdf, origin, wi, found, options)
 
 
-def _soft_shadow(sdf, origin, wi, t_max, settings):
+def penumbra(sdf, origin, wi, found, options):
+    """Soft-shadow visibility at the march's minimiser t* = found["t"]:
+
+        V = 0 if blocked, 1 if no sample lowered it (t* = 0), else smoothstep(h),
+        h = clip(k · sign · f(o + t* wi) / (L t*), 0, 1),
+
+    with t* held fixed (no gradient) and everything else differentiable; the sign
+    (inside a solid) and the Lipschitz factor L carry no gradient.
+    """
     dtype = origin.dtype
-    k = jnp.asarray(settings.penumbra, dtype)
-    eps = settings.hit_epsilon
-    inv_lipschitz = 1.0 / sdf.lipschitz().astype(dtype)  # a product per step
-    # Inside a solid the distance to its surface is −f.
-    sign = jnp.where(sdf(origin) < 0.0, -1.0, 1.0).astype(dtype)
-    # Steps are clamped to [eps, max_step]: a floor so that grazing rays progress and a
-    # ceiling so that thin occluders are sampled (both as in Quilez's soft shadows).
-    max_step = jnp.asarray(2.0, dtype)
-
-    def cond(s):
-        t, vis, i = s
-        return (i < settings.shadow_steps) & (t < t_max) & (vis > 1e-3)
-
-    def body(s):
-        t, vis, i = s
-        d = sign * sdf(origin + t * wi) * inv_lipschitz
-        h = jnp.clip(k * d / t, 0.0, 1.0)  # t ≥ eps > 0: starts at eps, steps ≥ eps
-        vis = jnp.minimum(vis, h * h * (3.0 - 2.0 * h))
-        vis = jnp.where(d < eps, 0.0, vis)
-        return t + jnp.clip(d, eps, max_step), vis, i + 1
-
-    init = (jnp.asarray(eps, dtype), jnp.ones((), dtype), jnp.zeros((), jnp.int32))
-    return jax.lax.while_loop(cond, body, init)[1]
-
+    fixed = stop_gradient(sdf)
+    sign = jnp.where(fixed(stop_gradient(origin)) < 0.0, -1.0, 1.0).astype(dtype)
+    inv_lipschitz = 1.0 / fixed.lipschitz().astype(dtype)
+    t = found["t"]
+    lowered = t > 0.0
+    safe_t = jnp.where(lowered, t, 1.0)
+    d = sign * sdf(origin + safe_t * wi) * inv_lipschitz
+    h = jnp.clip(jnp.asarray(options.penumbra, dtype) * d / safe_t, 0.0, 1.0)
+    value = h * h * (3.0 - 2.0 * h)
+    return jnp.where(found["blocked"], 0.0, jnp.where(lowered, value, 1.0)).astype(dtype)

@@ -8,6 +8,7 @@ from . import sharding, silhouette
 from .camera import pixel_samples
 from .integrator import trace_radiance
 from .kernels.fused import resolve_backend
+from .march import tape
 from .settings import RenderSettings
 
 
@@ -48,26 +49,14 @@ def _render(scene, camera, settings):
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
     h, w, spp = camera.height, camera.width, settings.spp
 
-    def kernel(ray, scene=scene, camera=camera):
-        o, d, cone, xy = ray
-        out = trace_radiance(scene, o, d, cone, settings)
-        if settings.silhouette:
-            out = silhouette.blend(scene, camera, xy, out, settings)
-        return {k: out[k] for k in ("rgb",) + settings.aovs}
+    kernel = _sample_kernel(settings)
 
     def trace_block(params, samples, grid, offset):
         """Every sample of a block of the image (all of it, or one device's block):
         `grid` (rows, columns of samples), `offset` its first (row, column)."""
-        scene, camera = params
         if resolve_backend(settings.backend) != "jax":
-            return _fused(scene, camera, samples, settings, kernel, grid, offset)
-        origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
-        rays = (origins, directions, cones, samples)
-        n = samples.shape[0]
-        if settings.batch_size is None or settings.batch_size >= n:
-            return jax.vmap(lambda r: kernel(r, scene, camera))(rays)
-        return jax.lax.map(lambda r: kernel(r, scene, camera), rays,
-                           batch_size=settings.batch_size)
+            return _recorded(kernel, params, samples, settings, grid, offset)
+        return _vmapped(kernel, params, samples, settings)
 
     if settings.devices == 1:
         out = trace_block((scene, camera), samples, (h, w * spp), (0, 0))
@@ -81,10 +70,114 @@ def _render(scene, camera, settings):
     return Image(**out)
 
 
+def _vmapped(kernel, params, samples, settings):
+    """The "jax" backend: the per-sample program vmapped over rays (in `lax.map` tiles
+    of `settings.batch_size`), differentiated as it is (the reference)."""
+    scene, camera = params
+    origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
+    rays = (origins, directions, cones, samples)
+    n = samples.shape[0]
+    if settings.batch_size is None or settings.batch_size >= n:
+        return jax.vmap(lambda r: kernel(r, scene, camera))(rays)
+    return jax.lax.map(lambda r: kernel(r, scene, camera), rays, batch_size=settings.batch_size)
+
+
+def _recorded(kernel, params, samples, settings, grid, offset):
+    """The fast backends ("fused", "pallas", "auto"), differentiable by record and replay.
+
+    The image is the per-sample program run lane-wise (`_fused`) with its marches
+    recorded (`jaxrt.march.tape`: hit t and flags, penumbra minima, near misses, as
+    extra per-sample outputs). Its derivative (a custom JVP, so forward and reverse
+    mode both work) is that of the *replay*: the same program vmapped over every sample
+    of the block at once, each march replaced by its record, so no loop is left; the
+    Newton steps at the recorded roots give the hit points their implicit gradients,
+    the penumbrae and coverage are evaluated at their recorded minima. The replay
+    computes the kernel's image (to rounding: tests/test_gradients.py), and gradients
+    equal those of the "jax" path wherever the records do not change under an
+    infinitesimal change of the parameters (a march's hit flag, step count, or the
+    sample at which a penumbra or a near miss took its minimum); where they would, the
+    gradient is that of the replay with the records held fixed (one-sided, as for the
+    "jax" path, whose loops are not differentiated either).
+    """
+    dyn, static = eqx.partition(params, eqx.is_array)
+
+    def record(dyn_, s):
+        return _record(kernel, eqx.combine(dyn_, static), s, settings, grid, offset)
+
+    @jax.custom_jvp
+    def image(dyn_, s):
+        return record(dyn_, s)["image"]
+
+    @image.defjvp
+    def image_jvp(primals, tangents):
+        out = record(*primals)
+        entries = jax.lax.stop_gradient(out["tape"])
+        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries)  # noqa: E731
+        _, tangent = jax.jvp(replay, primals, tangents)
+        return out["image"], tangent
+
+    return image(dyn, samples)
+
+
+def _sample_kernel(settings):
+    """The per-sample program: `kernel((o, d, cone, xy), scene, camera) -> {name: value}`."""
+
+    def kernel(ray, scene, camera):
+        o, d, cone, xy = ray
+        out = trace_radiance(scene, o, d, cone, settings)
+        if settings.silhouette:
+            out = silhouette.blend(scene, camera, xy, out, settings)
+        return {k: out[k] for k in ("rgb",) + settings.aovs}
+
+    return kernel
+
+
+def _record(kernel, params, samples, settings, grid, offset):
+    """{"image": per-sample outputs, "tape": per-sample records of every march}: the
+    kernel run lane-wise (`_fused`) with its marches recorded (no gradient)."""
+
+    def record_kernel(ray, scene, camera):
+        with tape.recording() as t:
+            out = kernel(ray, scene, camera)
+        return {"image": out, "tape": t.entries}
+
+    return _fused(*params, samples, settings, record_kernel, grid, offset)
+
+
+def _replay(kernel, params, samples, entries):
+    """The kernel vmapped over all `samples` at once with every march read from `entries`
+    (the records of `_record`): loop-free and differentiable."""
+    scene, camera = params
+    rays = (*jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1]), samples)
+
+    def one(ray, entry):
+        with tape.replaying(entry):
+            return kernel(ray, scene, camera)
+
+    return jax.vmap(one)(rays, entries)
+
+
+def replay_image(scene, camera, settings=None):
+    """(record, replay): the per-sample outputs [H·W·spp, ...] of one recorded render
+    (the fast backend's values) and of its replay (plain vmapped JAX); for tests."""
+    settings = RenderSettings() if settings is None else settings
+    scene, camera = _cast((scene, camera), _dtype(settings))
+    return _replay_image(scene, camera, settings)
+
+
+@eqx.filter_jit
+def _replay_image(scene, camera, settings):
+    samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
+    kernel = _sample_kernel(settings)
+    grid = (camera.height, camera.width * settings.spp)
+    out = _record(kernel, (scene, camera), samples, settings, grid, (0, 0))
+    return out["image"], _replay(kernel, (scene, camera), samples, out["tape"])
+
+
 def _fused(scene, camera, samples, settings, kernel, grid, offset):
     """The per-sample kernel run lane-wise by `jaxrt.kernels` (backend "fused"/"pallas"/
-    "auto") on a block `grid` of samples at `offset` in the image; gradients through the
-    vmapped path above."""
+    "auto") on a block `grid` of samples at `offset` in the image (no gradient: see
+    `_recorded`)."""
     from .kernels.fused import map_samples
 
     def one(params, px, py):

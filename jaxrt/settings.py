@@ -70,15 +70,17 @@ class RenderSettings:
       dtype            "float32" (default) or "float64" (needs jax_enable_x64).
       batch_size       rays per tile: tiles are traced one after another and each
                        stops as soon as its rays are done (None: whole image at once).
-      backend          how the per-ray program is batched: "jax" (vmap over rays,
-                       default, the reference), "fused" (the program scalarised into
-                       one lane per ray and run by XLA in tiles, `jaxrt.kernels`: same
-                       image; on CPUs sometimes faster, sometimes slower than "jax"),
-                       "pallas" (the same lanes inside one
-                       Pallas GPU kernel; interpret mode without a GPU) or "auto"
-                       (pallas on a GPU, fused elsewhere; falls
-                       back to jax where lanes cannot run the program). Gradients always come from
-                       the "jax" program.
+      backend          how the per-ray program is batched: "auto" (default: "pallas" on
+                       a GPU, "fused" elsewhere; falls back to "jax", with a one-line
+                       warning, for any program that lanes cannot run or that would
+                       take long to compile), "fused" (the program scalarised into one
+                       lane per ray and run by XLA in tiles, `jaxrt.kernels`),
+                       "pallas" (the same lanes inside one Pallas GPU kernel; interpret
+                       mode without a GPU) or "jax" (vmap over rays, the reference).
+                       Gradients: "jax" differentiates its own program; the others
+                       record their marches in the kernel and differentiate a
+                       loop-free replay of the program (`jaxrt.render`, same
+                       gradients to rounding).
       aovs             the AOVs that `render` returns besides rgb (a subset of
                        depth, normal, albedo, steps, coverage; the others are None in
                        the Image). Fewer AOVs: less memory written per pixel (the
@@ -130,7 +132,7 @@ class RenderSettings:
     wavelengths: int = 0
     dtype: str = "float32"
     batch_size: int | None = 4096
-    backend: str = "jax"
+    backend: str = "auto"
     devices: int = 1
     silhouette: bool = False
     silhouette_width: float = 1.0

@@ -94,81 +94,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .march import SphereTracing, tape
+from .march.silhouette import (EDGE_OFFSET, GOLDEN_STEPS, ILLINOIS_STEPS, INSIDE_AIM,  # noqa: F401
+                               PROJECT_STEPS, inner_hit, project_to_surface, refine_closest)
 from .trace import sphere_trace, stop_gradient
 from .vecmath import dot, normalize, safe_div, safe_norm
-
-#: Golden-section evaluations that refine the marched near miss: the bracket shrinks
-#: to 0.618¹⁰ ≈ 0.8 % of its width, so t* lies within ~0.4 % of a step of the minimum
-#: and the distance d* (quadratic there) is exact to ~1e-5 of a step.
-GOLDEN_STEPS = 10
-
-#: The inner ray aims this many pixels inside the outline. The colour it sees should
-#: be the limit at the outline: on a smooth surface the normal there turns towards the
-#: viewer as sqrt(2 · INSIDE_AIM / ρ) (ρ the outline's curvature radius in pixels),
-#: 0.06 at ρ = 6 px; smaller values need more precision than float32 has for the
-#: entry point at typical scene scales.
-INSIDE_AIM = 0.01
-
-#: The shape derivative of the outline is taken this fraction of (d* + one pixel)
-#: outside the surface point nearest the near miss.
-EDGE_OFFSET = 0.05
-
-#: Sphere-tracing steps from the near miss to the surface along its normal.
-PROJECT_STEPS = 8
-
-#: Regula falsi (Illinois) steps that find the inner ray's entry point.
-ILLINOIS_STEPS = 24
-
-_INV_PHI = 0.6180339887498949
-
-
-def _repeat(n, body, init):
-    """`body(i, state)` n times: a while loop with a static bound (a fori_loop would
-    lower to `scan`, which the lane-wise kernels of `jaxrt.kernels` do not run)."""
-    def step(s):
-        i, state = s
-        return i + 1, body(i, state)
-
-    return jax.lax.while_loop(lambda s: s[0] < n, step, (jnp.zeros((), jnp.int32), init))[1]
-
-
-def refine_closest(sdf, origin, direction, cone, hit):
-    """t* minimising f(o + t d) / r(t) in `hit.closest_bracket` (golden section; no gradient).
-
-    Returns the better of the refined t and the marched `hit.closest_t`.
-    """
-    sdf, o, d, cone = stop_gradient((sdf, origin, direction, cone))
-    dtype = o.dtype
-    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
-
-    def h(t):
-        return safe_div(jnp.abs(sdf(o + t * d)), cone[0] + cone[1] * t, big)
-
-    t_c = jax.lax.stop_gradient(hit.closest_t)
-    if hit.closest_bracket is None:
-        return t_c
-    a, b = jax.lax.stop_gradient(hit.closest_bracket)
-    a, b = jnp.minimum(a, t_c), jnp.maximum(b, t_c)
-
-    def body(_, s):
-        a, b, x1, h1, x2, h2 = s
-        left = h1 < h2  # the minimum lies in [a, x2]
-        a_new = jnp.where(left, a, x1)
-        b_new = jnp.where(left, x2, b)
-        x = jnp.where(left, b_new - _INV_PHI * (b_new - a_new), a_new + _INV_PHI * (b_new - a_new))
-        hx = h(x)
-        x1n = jnp.where(left, x, x2)
-        h1n = jnp.where(left, hx, h2)
-        x2n = jnp.where(left, x1, x)
-        h2n = jnp.where(left, h1, hx)
-        return a_new, b_new, x1n, h1n, x2n, h2n
-
-    x1 = b - _INV_PHI * (b - a)
-    x2 = a + _INV_PHI * (b - a)
-    a, b, x1, h1, x2, h2 = _repeat(GOLDEN_STEPS, body, (a, b, x1, h(x1), x2, h(x2)))
-    t_g = jnp.where(h1 < h2, x1, x2)
-    return jnp.where(jnp.minimum(h1, h2) < h(t_c), t_g, t_c)
-
 
 def ramp(u):
     """Coverage at u = d / (W · pixel) outside an outline: the quadratic B-spline step
@@ -229,7 +159,7 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     gradient.
     """
     dtype = origin.dtype
-    t_star = refine_closest(sdf, origin, direction, cone, hit)
+    t_star = tape.march(refine_closest, sdf, origin, direction, cone, hit)
     p_star = origin + t_star * direction
     fixed = stop_gradient(sdf)
     f, grad = jax.value_and_grad(lambda q: fixed(q))(p_star)
@@ -247,7 +177,7 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     # Shape part: the surface's own displacement near p_s (value 0), evaluated a
     # little outside it (EDGE_OFFSET), where the distance to a sharp edge still has
     # the direction of n* (on the edge itself either face's gradient may be taken).
-    p_s = project_to_surface(sdf, p_star, n)
+    p_s = tape.march(project_to_surface, sdf, p_star, n)
     offset = jax.lax.stop_gradient(EDGE_OFFSET * (distance + 2.0 * radius))
     f_s, grad_s = jax.value_and_grad(lambda q: sdf(q))(p_s + offset * n)
     grad_s = jax.lax.stop_gradient(grad_s)
@@ -266,68 +196,6 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     return alpha, valid, p_s, n_s, radius
 
 
-def project_to_surface(sdf, p, n):
-    """The surface point on the line p − s n, s ≥ 0, from p outside (no gradient):
-    `PROJECT_STEPS` sphere-tracing steps s ← s + f(p − s n) / L along −n (they never
-    pass the surface; head-on, each step removes at least 1 − |∇f|/L of the gap).
-    """
-    sdf, p, n = stop_gradient((sdf, p, n))
-    lipschitz = sdf.lipschitz().astype(p.dtype)
-
-    def body(_, s):
-        return s + jnp.maximum(sdf(p - s * n), 0.0) / lipschitz
-
-    return p - _repeat(PROJECT_STEPS, body, jnp.zeros((), p.dtype)) * n
-
-
-def inner_hit(sdf, origin, p_s, n_s, radius, settings):
-    """Where a ray from `origin` aimed INSIDE_AIM pixel inside the outline enters the
-    surface: (entry point, unit direction, found), no gradient.
-
-    The aim point q = p_s − κ n_s, κ = INSIDE_AIM · 2r*, lies inside the surface
-    (f(q) ≈ −κ). A coarse march (hit threshold a quarter of a pixel) brings the ray
-    near the surface without passing it, and `ILLINOIS_STEPS` steps of regula falsi
-    (Illinois) on [t_march, |q − o|], where f changes sign, find the entry: grazing
-    entries, which sphere tracing approaches only geometrically, cost no more.
-    """
-    sdf, o, p_s, n_s, radius = stop_gradient((sdf, origin, p_s, n_s, radius))
-    dtype = o.dtype
-    q = p_s - INSIDE_AIM * 2.0 * radius * n_s
-    v = q - o
-    t_q = jnp.sqrt(dot(v, v))
-    aim = normalize(v)
-    spread = safe_div(radius, t_q)  # a cone of a quarter pixel for the coarse march
-    coarse = settings.replace(newton_steps=0, pixel_epsilon=0.5)
-    march = sphere_trace(sdf, o, aim, coarse, cone=jnp.stack([jnp.zeros_like(spread), spread]),
-                         t_max=t_q)
-    a = jnp.minimum(march.t, t_q)
-
-    def g(t):
-        return sdf(o + t * aim)
-
-    ga, gb = g(a), g(t_q)
-    found = (~march.inside) & (ga >= 0.0) & (gb < 0.0)
-
-    def body(_, s):
-        a, ga, b, gb, side = s
-        # Regula falsi with the Illinois modification (halve the weight of an end
-        # point that is kept twice), which converges superlinearly.
-        c = a + safe_div(ga * (b - a), ga - gb, 0.5 * (b - a))
-        c = jnp.clip(c, jnp.minimum(a, b), jnp.maximum(a, b))
-        gc = g(c)
-        outside = gc >= 0.0
-        a_new, ga_new = jnp.where(outside, c, a), jnp.where(outside, gc, ga)
-        b_new, gb_new = jnp.where(outside, b, c), jnp.where(outside, gb, gc)
-        gb_new = jnp.where(outside & (side > 0), 0.5 * gb_new, gb_new)
-        ga_new = jnp.where((~outside) & (side < 0), 0.5 * ga_new, ga_new)
-        side = jnp.where(outside, 1, -1).astype(jnp.int32)
-        return a_new, ga_new, b_new, gb_new, side
-
-    a, _, _, _, _ = _repeat(ILLINOIS_STEPS, body, (a, ga, t_q, gb, jnp.zeros((), jnp.int32)))
-    # The outside end of the bracket: f ≥ 0 there, within rounding of the root.
-    return o + a * aim, aim, found & jnp.isfinite(a)
-
-
 def blend(scene, camera, xy, out, settings):
     """Apply the estimator to the `trace_radiance` result `out` of the camera ray through
     continuous pixel position `xy` = (px, py).
@@ -343,11 +211,13 @@ def blend(scene, camera, xy, out, settings):
     jacobian = jax.lax.stop_gradient(
         jax.jacfwd(lambda q: camera.generate_ray(q[0], q[1])[:2])(xy))
     # The camera ray's march again (its near miss is not in `out`); no polishing.
-    march = settings.replace(newton_steps=0)
-    hit = sphere_trace(scene.surface, origin, direction, march, cone=cone)
+    march = SphereTracing.of(settings, newton_steps=0)
+    hit = sphere_trace(scene.surface, origin, direction, march, cone=cone,
+                       fields=("inside", "closest_t", "closest_bracket"))
     alpha, valid, p_s, n_s, radius = coverage(
         scene.surface, origin, direction, cone, jacobian, hit, settings)
-    entry, aim, found = inner_hit(scene.surface, origin, p_s, n_s, radius, settings)
+    entry, aim, found = tape.march(lambda *a: inner_hit(*a, settings), scene.surface, origin,
+                                   p_s, n_s, radius)
     use = valid & found
     alpha = jnp.where(use, alpha, 0.0)
     t_entry = jax.lax.stop_gradient(dot(entry - origin, aim))

@@ -5,8 +5,9 @@ t ← t + f(o + t d) / L from t = 0 until f < ε (hit), t > max_distance (miss) 
 budget runs out (exhausted). L is the scene's Lipschitz factor (1 for distance bounds).
 A ray that starts inside a surface (f(o) < 0) marches on |f| and finds where it leaves.
 
-The loop is a bounded `lax.while_loop` (vmapped it runs until every ray of the batch is
-done) and is not differentiated. The hit distance gets its gradient from the implicit
+The loop (`jaxrt.march.sphere`, called through the tape of `jaxrt.march.tape`, so that a
+render can record it in a fast kernel and replay it) is a bounded `lax.while_loop`
+(vmapped it runs until every ray of the batch is done) and is not differentiated. The hit distance gets its gradient from the implicit
 function theorem at the root of g(t; θ) = f(o + t d; θ): one Newton step from the
 marched t̂ (held constant),
 
@@ -41,7 +42,9 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from .vecmath import dot, normalize, safe_div, safe_sqrt
+from .march import tape
+from .march.sphere import SphereTracing, hit_epsilon as hit_epsilon, march as march_sphere
+from .vecmath import dot, normalize, safe_div, safe_sqrt, stop_gradient as stop_gradient
 
 #: |∇f · d| below this is a grazing hit: the Newton correction (and its gradient) is
 #: dropped there instead of dividing by ~0. A cosine of 1e-6 is ~0.00006° from tangent.
@@ -68,44 +71,50 @@ class Hit(eqx.Module):
 
     t: jnp.ndarray
     hit: jnp.ndarray
-    steps: jnp.ndarray
-    inside: jnp.ndarray
-    exhausted: jnp.ndarray
-    closest_t: jnp.ndarray
-    closest_d: jnp.ndarray
+    steps: jnp.ndarray | None
+    inside: jnp.ndarray | None
+    exhausted: jnp.ndarray | None
+    closest_t: jnp.ndarray | None
+    closest_d: jnp.ndarray | None
     closest_bracket: jnp.ndarray | None = None
 
 
-def hit_epsilon(settings, t, cone):
-    """ε(t) = hit_epsilon + pixel_epsilon · r(t), with r(t) = cone[0] + cone[1] · t."""
-    return settings.hit_epsilon + settings.pixel_epsilon * (cone[0] + cone[1] * t)
+HIT_FIELDS = ("t", "hit", "steps", "inside", "exhausted", "closest_t", "closest_d",
+              "closest_bracket")
 
 
-def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None):
+def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None, fields=None):
     """Sphere-trace one ray against `sdf`; see the module docstring.
 
     Args:
       sdf: a `jaxrt.sdf` node (or any object with `eval(p) -> (d, material)` and
         `lipschitz()`).
       origin, direction: [3] arrays; `direction` must be unit length.
-      settings: `RenderSettings` (max_steps, hit_epsilon, pixel_epsilon, max_distance,
-        over_relaxation, newton_steps, root_solver).
+      settings: `RenderSettings` or `jaxrt.march.SphereTracing` (max_steps, hit_epsilon,
+        pixel_epsilon, max_distance, over_relaxation, newton_steps, root_solver).
       cone: (r0, spread) of the pixel cone, r(t) = r0 + spread · t (default: a cone of
         zero width, so the pixel epsilon is inactive).
       t_max: stop at this distance instead of settings.max_distance (shadow rays).
+      fields: the `Hit` fields wanted (default all; the others are None): the march
+        records only these when a render records its marches (`jaxrt.march.tape`).
 
     Returns: `Hit`; `t` is differentiable with respect to the scene, origin and
     direction through the implicit function theorem when the ray hits.
     """
+    options = SphereTracing.of(settings)
     if cone is None:
         cone = jnp.zeros(2, origin.dtype)
-    t_max = settings.max_distance if t_max is None else t_max
-    m = _march(stop_gradient(sdf), stop_gradient(origin), stop_gradient(direction), settings,
-               stop_gradient(cone), stop_gradient(t_max))
-    t = polish_root(sdf, origin, direction, m["t"], m["hit"], settings)
-    return Hit(t=t, hit=m["hit"], steps=m["steps"], inside=m["inside"],
-               exhausted=m["exhausted"], closest_t=m["closest_t"], closest_d=m["closest_d"],
-               closest_bracket=m["closest_bracket"])
+    t_max = options.max_distance if t_max is None else t_max
+    wanted = HIT_FIELDS if fields is None else ("t", "hit") + tuple(fields)
+
+    def run(sdf, origin, direction, cone, t_max):
+        m = march_sphere(sdf, origin, direction, options, cone, t_max)
+        return {k: m[k] for k in HIT_FIELDS if k in wanted}
+
+    m = tape.march(run, stop_gradient(sdf), stop_gradient(origin), stop_gradient(direction),
+                   stop_gradient(cone), stop_gradient(t_max))
+    t = polish_root(sdf, origin, direction, m["t"], m["hit"], options)
+    return Hit(**{**dict.fromkeys(HIT_FIELDS), **m, "t": t})
 
 
 def polish_root(sdf, origin, direction, t, hit, settings):
@@ -176,112 +185,6 @@ def _polish_optimistix(sdf, origin, direction, t, hit, steps):
                               args=(sdf, origin, direction), max_steps=steps,
                               adjoint=optx.ImplicitAdjoint(), throw=False)
     return jnp.where(ok, solution.value, t0)
-
-
-def stop_gradient(tree):
-    """`lax.stop_gradient` on the array leaves of a pytree (other leaves pass through)."""
-    return jax.tree_util.tree_map(
-        lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree
-    )
-
-
-def _march(sdf, origin, direction, settings, cone, t_max):
-    """The bounded sphere-tracing loop (no gradient). Returns a dict of `Hit` fields."""
-    dtype = origin.dtype
-    lipschitz = sdf.lipschitz().astype(dtype)
-    inv_lipschitz = 1.0 / lipschitz  # once per ray: a product per step, not a division
-    relax = settings.over_relaxation != 1.0  # static: plain sphere tracing needs no fall-back
-    omega0 = jnp.asarray(settings.over_relaxation, dtype)
-    start = sdf(origin)
-    sign = jnp.where(start < 0.0, -1.0, 1.0).astype(dtype)
-    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
-    zero = jnp.zeros((), dtype)
-
-    def radius_at(t):
-        return sign * sdf(origin + t * direction) * inv_lipschitz
-
-    def ratio_at(t, r):
-        # f / r(t): distance in pixel-cone radii (big where the cone has no width).
-        return safe_div(r, cone[0] + cone[1] * t, big)
-
-    r0 = sign * start * inv_lipschitz
-    # t, r: the current sample (r = |f|/L there); t_prev, r_prev: the previous accepted
-    # sample (over-relaxation); last_*: the previous accepted sample for the near-miss
-    # search, last_lo the sample before it; best_*: the nearest near miss so far.
-    init = dict(t=zero, r=r0, steps=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool),
-                hit=jnp.zeros((), bool), last=big, last_t=zero, last_r=r0, last_lo=zero,
-                best=big, best_t=zero, best_r=r0, best_lo=zero, best_hi=zero)
-    if relax:
-        init.update(t_prev=zero, r_prev=r0, omega=omega0)
-
-    def cond(s):
-        return (~s["done"]) & (s["steps"] < settings.max_steps)
-
-    def body(s):
-        t, r = s["t"], s["r"]
-        eps = hit_epsilon(settings, t, cone)
-        new = dict(s)
-        fail = None  # ω = 1: no step can fail, and the selects below vanish at trace time
-        if relax:
-            # Over-relaxation fall-back (Keinert et al. 2014): if the unbounding spheres
-            # of the previous and current samples do not overlap, the long step may have
-            # skipped a surface: return to the safe step from the previous sample.
-            t_prev, r_prev, omega = s["t_prev"], s["r_prev"], s["omega"]
-            fail = (omega > 1.0) & (r + r_prev < t - t_prev) & (s["steps"] > 0)
-
-        def unless_fail(a, b):
-            return b if fail is None else jnp.where(fail, a, b)
-
-        def accepted(x):
-            return x if fail is None else (~fail) & x
-
-        is_hit = accepted(r < eps)
-        # Near misses: when f/r grows again, the previous sample was a local minimum.
-        ratio = ratio_at(t, r)
-        rising = accepted(ratio > s["last"])
-        better = rising & (s["last"] < s["best"])
-        new["best"] = jnp.where(better, s["last"], s["best"])
-        new["best_t"] = jnp.where(better, s["last_t"], s["best_t"])
-        new["best_r"] = jnp.where(better, s["last_r"], s["best_r"])
-        new["best_lo"] = jnp.where(better, s["last_lo"], s["best_lo"])
-        new["best_hi"] = jnp.where(better, t, s["best_hi"])
-        new["last"] = unless_fail(s["last"], ratio)
-        new["last_t"] = unless_fail(s["last_t"], t)
-        new["last_r"] = unless_fail(s["last_r"], r)
-        new["last_lo"] = unless_fail(s["last_lo"], s["last_t"])
-        t_next = unless_fail(t_prev + r_prev, t + omega * r) if relax else t + r
-        escaped = (~is_hit) & (t_next > t_max)
-        done = is_hit | escaped
-        new["t"] = jnp.where(done, t, t_next)
-        new["r"] = jnp.where(done, r, radius_at(jnp.minimum(new["t"], t_max)))
-        if relax:
-            new["omega"] = unless_fail(1.0, omega).astype(dtype)
-            new["t_prev"] = jnp.where(done, t_prev, unless_fail(t_prev, t))
-            new["r_prev"] = jnp.where(done, r_prev, unless_fail(r_prev, r))
-        new["steps"] = s["steps"] + 1
-        new["done"] = done
-        new["hit"] = is_hit
-        return new
-
-    s = jax.lax.while_loop(cond, body, init)
-    t, r, done = s["t"], s["r"], s["done"]
-    # A ray whose budget ran out while already within epsilon still counts as a hit.
-    hit = s["hit"] | ((~done) & (r < hit_epsilon(settings, t, cone)))
-    exhausted = (~done) & (~hit)
-    # A ray that did not hit ends with a near miss: the smaller of its last two samples
-    # (a budget that ran out leaves one sample that the loop did not examine).
-    final = ratio_at(t, r)
-    use_final = (~hit) & (~done) & (final < s["last"]) & (final < s["best"])
-    use_last = (~hit) & (~use_final) & (s["last"] < s["best"])
-    best_t = jnp.where(use_final, t, jnp.where(use_last, s["last_t"], s["best_t"]))
-    best_r = jnp.where(use_final, r, jnp.where(use_last, s["last_r"], s["best_r"]))
-    lo = jnp.where(use_final, s["last_t"], jnp.where(use_last, s["last_lo"], s["best_lo"]))
-    hi = jnp.where(use_final, t, jnp.where(use_last, t, s["best_hi"]))
-    return dict(
-        t=jnp.where(hit, t, jnp.asarray(t_max, dtype)), hit=hit, steps=s["steps"],
-        inside=start < 0.0, exhausted=exhausted, closest_t=best_t,
-        closest_d=best_r * lipschitz * sign, closest_bracket=jnp.stack([lo, hi]),
-    )
 
 
 def surface_normal(sdf, p, settings):

@@ -12,6 +12,7 @@ one.
 
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -129,3 +130,10 @@ def to_world(v, n):
 def luminance(rgb):
     """Relative luminance Y of linear sRGB (ITU-R BT.709 primaries)."""
     return 0.2126 * rgb[..., 0] + 0.7152 * rgb[..., 1] + 0.0722 * rgb[..., 2]
+
+
+def stop_gradient(tree):
+    """`lax.stop_gradient` on the array leaves of a pytree (other leaves pass through)."""
+    return jax.tree_util.tree_map(
+        lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree
+    )

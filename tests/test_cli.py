@@ -68,3 +68,199 @@ def test_backend_from_the_flag_else_the_file(tmp_path, capsys):
     assert "backend fused" in capsys.readouterr().out
     a, b = io.read_exr(tmp_path / "a.exr")["rgb"], io.read_exr(tmp_path / "b.exr")["rgb"]
     np.testing.assert_allclose(a, b, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- conventions
+
+
+def test_python_m_jaxrt_and_version():
+    import subprocess
+    import sys
+
+    import jaxrt
+
+    out = subprocess.run([sys.executable, "-m", "jaxrt", "--version"], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == f"jaxrt {jaxrt.__version__}"
+
+
+def test_set_overrides_any_setting_and_compile_lines(tmp_path, capsys):
+    config = tmp_path / "ball.toml"
+    config.write_text(SCENE)
+    out = tmp_path / "ball"
+    argv = ["render", str(config), "-o", str(out), "--set", "max_steps=64", "--set", "shadows=none",
+            "--set", 'aovs=["depth"]', "--set", "backend=jax", "--no-cache"]
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "backend jax" in captured.out and "Mrays/s" in captured.out
+    assert "0.000 Mrays/s" not in captured.out
+    lines = captured.err.strip().splitlines()
+    assert lines[0] == "jaxrt: compiling…" and lines[1].startswith("jaxrt: compiled in ")
+    image = io.read_exr(out.with_suffix(".exr"))
+    assert "depth" in image and "normal" not in image  # aovs = ["depth"]
+
+
+def test_set_unknown_or_invalid_is_one_line(tmp_path, capsys):
+    config = tmp_path / "ball.toml"
+    config.write_text(SCENE)
+    out = tmp_path / "renders" / "ball"
+    for item, expected in [
+        ("max_stepz=3", "--set max_stepz=3: unknown setting `max_stepz`, expected one of max_steps, "),
+        ("max_steps=0", "--set: settings.max_steps = 0, expected an integer ≥ 1"),
+        ("shadows=sharp", "--set: settings.shadows = 'sharp', expected one of ('none', 'hard', 'soft')"),
+        ("max_steps", "--set max_steps: expected KEY=VALUE"),
+    ]:
+        assert main(["render", str(config), "-o", str(out), "--set", item]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and err.startswith(f"jaxrt: error: {expected}"), err
+    assert not (tmp_path / "renders").exists()
+
+
+def test_format_rate_has_three_significant_digits():
+    from jaxrt.cli import format_rate
+
+    assert [format_rate(x) for x in (0.000123456, 0.0456, 4.567, 78.9, 789.4, 12345.6, 0.0)] == \
+        ["0.000123", "0.0456", "4.57", "78.9", "789", "12346", "0"]
+
+
+# --------------------------------------------------------------------------- all or nothing
+
+
+def _fake_compile(monkeypatch, calls=None):
+    """`compile_render` replaced by one that returns a 6×10 image at once (the output
+    tests are about files, not rendering)."""
+    import importlib
+
+    import jax.numpy as jnp
+
+    render_module = importlib.import_module("jaxrt.render")  # the module, not jaxrt.render()
+
+    def fake(scene, camera, settings):
+        if calls is not None:
+            calls.append(1)
+        h, w = camera.height, camera.width
+        return lambda scene, camera: render_module.Image(
+            rgb=jnp.full((h, w, 3), 0.5), depth=jnp.ones((h, w)))
+
+    monkeypatch.setattr(render_module, "compile_render", fake)
+
+
+def _ball(tmp_path):
+    config = tmp_path / "ball.toml"
+    config.write_text(SCENE)
+    return config
+
+
+def _one_error_line(capsys, *fragments):
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert lines[-1].startswith("jaxrt: error: ") and "Traceback" not in captured.err, captured.err
+    assert all(f in lines[-1] for f in fragments), lines[-1]
+    errors = [line for line in lines if line.startswith("jaxrt: error")]
+    assert len(errors) == 1
+    return lines[-1]
+
+
+def _unwritable_folder(tmp_path):
+    """A folder in which no file can be created, for root too where possible."""
+    import os
+
+    import pytest
+
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        io.check_writable(folder / "x.exr")
+    except io.JaxrtIOError:
+        return folder
+    if os.path.isdir("/sys"):  # root ignores modes; sysfs is read-only
+        try:
+            io.check_writable("/sys/jaxrt-test.exr")
+        except io.JaxrtIOError:
+            return Path("/sys")
+    pytest.skip("no unwritable folder on this machine")
+
+
+from pathlib import Path  # noqa: E402
+
+
+def test_unwritable_folder_fails_before_compiling(tmp_path, capsys, monkeypatch):
+    calls = []
+    _fake_compile(monkeypatch, calls)
+    folder = _unwritable_folder(tmp_path)
+    assert main(["render", str(_ball(tmp_path)), "-o", str(folder / "sub" / "ball")]) == 1
+    _one_error_line(capsys, "cannot write in", str(folder))
+    assert calls == [] and not (folder / "sub").exists()
+
+
+def test_parent_is_a_file_or_target_is_a_folder(tmp_path, capsys, monkeypatch):
+    calls = []
+    _fake_compile(monkeypatch, calls)
+    config = _ball(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    assert main(["render", str(config), "-o", str(tmp_path / "afile" / "ball")]) == 1
+    _one_error_line(capsys, "is a file, not a folder")
+    (tmp_path / "ball.png").mkdir()
+    assert main(["render", str(config), "-o", str(tmp_path / "ball")]) == 1
+    _one_error_line(capsys, f"{tmp_path / 'ball.png'}: is a folder")
+    assert calls == [] and not (tmp_path / "ball.exr").exists()
+
+
+def _no_outputs(folder):
+    return sorted(p.name for p in folder.rglob("*") if p.name not in ("ball.toml", "afile"))
+
+
+def test_png_failing_after_the_exr_leaves_neither(tmp_path, capsys, monkeypatch):
+    import errno
+
+    _fake_compile(monkeypatch)
+
+    def broken_png(path, rgb, exposure=0.0):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(io, "write_png", broken_png)
+    out = tmp_path / "renders" / "ball"
+    assert main(["render", str(_ball(tmp_path)), "-o", str(out)]) == 1
+    _one_error_line(capsys, f"{out.with_suffix('.png')}: cannot write (No space left on device)")
+    assert _no_outputs(tmp_path) == []  # no EXR, no temporary file, no folder
+
+
+def test_exr_failing_leaves_neither(tmp_path, capsys, monkeypatch):
+    _fake_compile(monkeypatch)
+
+    def broken_exr(path, image, channels=None):
+        raise io.JaxrtIOError(f"{path}: AOV `depth` has shape (1,), expected [6, 10]")
+
+    monkeypatch.setattr(io, "write_exr", broken_exr)
+    out = tmp_path / "ball"
+    assert main(["render", str(_ball(tmp_path)), "-o", str(out)]) == 1
+    _one_error_line(capsys, f"{out.with_suffix('.exr')}: AOV `depth`")  # named as the target
+    assert _no_outputs(tmp_path) == []
+
+
+def test_rename_failing_after_the_exr_is_in_place_removes_it(tmp_path, capsys, monkeypatch):
+    """The PNG's target becomes a folder while rendering: its rename fails after the
+    EXR's succeeded, and the EXR is taken back."""
+    _fake_compile(monkeypatch)
+    out = tmp_path / "ball"
+    real_png = io.write_png
+
+    def racing_png(path, rgb, exposure=0.0):
+        real_png(path, rgb, exposure)
+        (tmp_path / "ball.png").mkdir()
+        (tmp_path / "ball.png" / "keep").write_text("x")
+
+    monkeypatch.setattr(io, "write_png", racing_png)
+    assert main(["render", str(_ball(tmp_path)), "-o", str(out)]) == 1
+    _one_error_line(capsys, f"{out.with_suffix('.png')}: cannot write")
+    assert _no_outputs(tmp_path) == ["ball.png", "keep"]  # only the folder that was in the way
+
+
+def test_success_replaces_old_outputs_and_leaves_no_temporaries(tmp_path, capsys, monkeypatch):
+    _fake_compile(monkeypatch)
+    out = tmp_path / "ball"
+    out.with_suffix(".exr").write_text("old")
+    assert main(["render", str(_ball(tmp_path)), "-o", str(out)]) == 0
+    assert _no_outputs(tmp_path) == ["ball.exr", "ball.png"]
+    assert io.read_exr(out.with_suffix(".exr"))["rgb"].shape == (8, 12, 3)

@@ -308,3 +308,27 @@ def test_store_is_exact_and_a_fusion_boundary_on_cpu():
         counts[name] = hlo.count(" multiply(")
     assert counts["store"] <= 40 + 8 + 8, counts  # the chain once (2 per step), 8 outputs
     assert counts["none"] >= 4 * counts["store"], counts  # what the store prevents
+
+
+def test_batched_while_steps_only_its_active_elements():
+    """A while loop inside a vmap of the one-ray program (ray-tree levels, wavelengths)
+    steps each element only while its own predicate holds, as vmap does: lanes used to
+    step every element while any was active (a height field hit behind a glass sphere
+    marched on past its crossing)."""
+
+    def fn(params, px, py):
+        def count(x):
+            return jax.lax.while_loop(lambda s: s[0] < x, lambda s: (s[0] + 1.0, s[1] + 1), (0.0, 0))
+
+        t, n = jax.vmap(count)(jnp.stack([px, py]) * params)
+        return {"t": t, "n": n}
+
+    samples = jnp.asarray(np.random.default_rng(1).uniform(0, 6, (8, 2)))
+
+    def reference(params, s):
+        return jax.vmap(lambda q: fn(params, q[0], q[1]))(s)
+
+    out = map_samples(fn, jnp.float64(1.0), samples, jr.RenderSettings(backend="fused"), reference)
+    want = reference(jnp.float64(1.0), samples)
+    np.testing.assert_array_equal(out["n"], want["n"])
+    np.testing.assert_array_equal(out["t"], want["t"])

@@ -19,7 +19,7 @@ LOOP = 10**9  # a threshold no group reaches: the loop union
 
 def mixed_children():
     """Interleaved kinds: 10 spheres (material 0), 9 boxes, 8 twisted boxes (L > 1), 3
-    spheres of material 1 (below the threshold: a loop), a plane (y = −2) and a repeated
+    spheres of material 1 (one group with the others), a plane (y = −2, a loop) and a repeated
     box (ties within a group). Exact ties between groups are in `test_ties_...`: here,
     where a child in the loop and one in the scan are at the same distance, the two
     paths may round it differently (by an ulp) and pick different materials."""
@@ -54,7 +54,9 @@ def evaluate(union, p, threshold):
 def test_stacking_groups_children():
     groups = stack.group_by_structure(mixed_children())
     sizes = sorted(len(ix) for ix, _ in groups)
-    assert sizes == [1, 3, 8, 10, 10]  # plane; spheres m1; twisted boxes; boxes (+ repeat); spheres m0
+    # plane; twisted boxes; boxes (+ repeat); spheres of materials 0 and 1 (materials are
+    # data in a group: children that differ only in their material are one kind)
+    assert sizes == [1, 8, 10, 13]
     assert sum(len(ix) >= stack.STACK_THRESHOLD for ix, _ in groups) == 3
 
 

@@ -1,29 +1,32 @@
-"""Benchmark: the cost of gradients. Time of `jax.value_and_grad` of an image loss over
-the time of `render`, and the memory of the gradient program at max_steps 64 and 1024.
+"""Benchmark: the cost of gradients. The forward render (fastest backend) against
+`jax.value_and_grad` of an L2 image loss with respect to every float of scene and camera.
 
-The scene is the showcase (`jaxrt/data/showcase.toml`, every primitive, combination,
-placement and deformation family, a row of reflectance models) at the config's size.
-The loss is the L2 distance to a target rendered with the lights 10 % brighter; its
-gradient is taken with respect to every float of the scene and the camera (shapes,
-placements, materials, lights, camera: ~100 leaves). For each variant (silhouette
-estimator off/on) and each step budget (max_steps = shadow_steps ∈ budgets):
+Scenes (configs/experiments/gradients.toml): the Warp scene, a union of 64 spheres in
+two materials on a plane (built here), the showcase and the glass scene at its file's
+depth. The loss is the L2 distance to a target rendered with the lights 10 % brighter.
+For each scene and each march budget (max_steps = shadow_steps), in a fresh process (so
+that peak memory figures do not mix):
 
-- render: median seconds of a compiled `render` over `repeats` calls;
-- value_and_grad: median seconds of the compiled value and gradient, timed in turns
-  with the render (same machine load), and the median of the per-turn ratios;
-- memory: XLA's memory analysis of the compiled programs (temporary bytes, what the
-  program allocates beyond its inputs and outputs), on a GPU the process's peak
-  device memory, and the process's peak resident memory (`ru_maxrss`: on a CPU this is
-  the device memory; it includes compilation), each budget measured in a fresh process so
-  that peaks do not mix.
+- forward: median seconds of a compiled `render` (the config's backend, "auto": Pallas
+  on a GPU, fused lanes on a CPU, with their fall-backs) over `repeats` calls;
+- value_and_grad: median seconds of the compiled loss and gradient (the fast backends
+  record their marches and differentiate a loop-free replay, `jaxrt.render`), timed in
+  turns with the forward (same machine load), and the median of the per-turn ratios;
+- with --reference, also value_and_grad through backend="jax" (the vmapped program,
+  differentiated as it is: how gradients were taken before record/replay);
+- compile times; memory: XLA's memory analysis of the compiled programs (temporary
+  bytes), on a GPU the peak device memory (`memory_stats()["peak_bytes_in_use"]`), and
+  the process's peak resident memory (`ru_maxrss`; on a CPU it includes compilation).
 
-The marching loops are not differentiated (implicit gradients at the hit), so the
-gradient program's memory must not depend on max_steps: the script prints the ratio of
-the 1024-step figure to the 64-step one (expected within 10 %).
+Gradient memory must not grow with max_steps (no march is differentiated): run two
+budgets (--max-steps 64 1024) and the script prints the ratios.
 
-    python experiments/bench/gradients.py [--config configs/experiments/bench_gradients.toml]
-        [--width W --height H] [--repeats N] [--variants point_samples silhouettes]
-        [--out out/bench_gradients]
+    python experiments/bench/gradients.py [--config configs/experiments/gradients.toml]
+        [--scenes warp spheres64 showcase glass] [--size warp=2048x1024 ...]
+        [--max-steps 64 1024] [--repeats N] [--backend auto] [--silhouette]
+        [--reference] [--out out/bench_gradients]
+
+Sizes default to the config's `gpu` sizes on a GPU and its `cpu` sizes elsewhere.
 """
 
 import argparse
@@ -40,59 +43,101 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--config", default=str(ROOT / "configs/experiments/bench_gradients.toml"))
-    ap.add_argument("--width", type=int)
-    ap.add_argument("--height", type=int)
+    ap.add_argument("--config", default=str(ROOT / "configs/experiments/gradients.toml"))
+    ap.add_argument("--scenes", nargs="+", help="a subset of the config's scenes")
+    ap.add_argument("--size", nargs="+", default=[], metavar="SCENE=WxH",
+                    help="image sizes, e.g. warp=2048x1024 (default: the config's)")
+    ap.add_argument("--max-steps", nargs="+", type=int, help="march budgets")
     ap.add_argument("--repeats", type=int)
-    ap.add_argument("--variants", nargs="+", help="a subset of the config's variants")
+    ap.add_argument("--backend", help="forward/gradient backend (default: the config's)")
+    ap.add_argument("--silhouette", action="store_true", help="silhouette estimator on")
+    ap.add_argument("--reference", action="store_true",
+                    help='also time value_and_grad through backend="jax"')
     ap.add_argument("--out", default=None)
-    ap.add_argument("--one", nargs=2, metavar=("VARIANT", "MAX_STEPS"),
+    ap.add_argument("--one", nargs=4, metavar=("SCENE", "W", "H", "MAX_STEPS"),
                     help=argparse.SUPPRESS)  # internal: measure one configuration
     args = ap.parse_args(argv)
     cfg = tomllib.loads(Path(args.config).read_text())
-    for key in ("width", "height", "repeats"):
-        if getattr(args, key) is not None:
-            cfg[key] = getattr(args, key)
-
-    if args.variants:
-        unknown = sorted(set(args.variants) - set(cfg["variants"]))
-        if unknown:
-            ap.error(f"--variants {unknown}: expected some of {cfg['variants']}")
-        cfg["variants"] = args.variants
+    cfg["repeats"] = args.repeats or cfg["repeats"]
+    cfg["backend"] = args.backend or cfg["backend"]
+    cfg["silhouette"] = args.silhouette
+    cfg["reference"] = args.reference
     if args.one:
-        print(json.dumps(measure(cfg, args.one[0], int(args.one[1]))))
+        name, w, h, steps = args.one
+        print(json.dumps(measure(cfg, name, int(w), int(h), int(steps))))
         return
 
+    scenes = args.scenes or list(cfg["scenes"])
+    unknown = sorted(set(scenes) - set(cfg["scenes"]))
+    if unknown:
+        ap.error(f"--scenes {unknown}: expected some of {list(cfg['scenes'])}")
+    sizes = {}
+    for item in args.size:
+        try:
+            name, wh = item.split("=")
+            sizes[name] = tuple(int(v) for v in wh.lower().split("x"))
+        except ValueError:
+            ap.error(f"--size {item!r}: expected SCENE=WxH, e.g. warp=2048x1024")
+    budgets = args.max_steps or cfg["max_steps"]
+    gpu = _on_gpu()
     out = Path(args.out or ROOT / "out" / "bench_gradients")
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for variant in cfg["variants"]:
-        for steps in cfg["budgets"]:
-            cmd = [sys.executable, __file__, "--config", args.config, "--one", variant, str(steps)]
-            for key in ("width", "height", "repeats"):
-                cmd += [f"--{key}", str(cfg[key])]
+    for name in scenes:
+        w, h = sizes.get(name) or cfg["scenes"][name]["gpu" if gpu else "cpu"]
+        for steps in budgets:
+            cmd = [sys.executable, __file__, "--config", args.config, "--repeats",
+                   str(cfg["repeats"]), "--backend", cfg["backend"], "--one", name, str(w),
+                   str(h), str(steps)]
+            cmd += ["--silhouette"] * args.silhouette + ["--reference"] * args.reference
             res = subprocess.run(cmd, capture_output=True, text=True)
             if res.returncode != 0:
-                sys.exit(f"{' '.join(cmd)} failed:\n{res.stderr[-4000:]}")
+                print(f"{' '.join(cmd)} failed:\n{res.stderr[-3000:]}", flush=True)
+                continue
             row = json.loads(res.stdout.strip().splitlines()[-1])
             rows.append(row)
             print(_format(row), flush=True)
     print()
-    for variant in cfg["variants"]:
-        mine = {r["max_steps"]: r for r in rows if r["variant"] == variant}
+    for name in scenes:
+        mine = {r["max_steps"]: r for r in rows if r["scene"] == name}
+        if len(mine) < 2:
+            continue
         lo, hi = mine[min(mine)], mine[max(mine)]
         for key in ("grad_temp_bytes", "peak_device_bytes", "peak_rss_bytes"):
-            if lo.get(key):
-                print(f"{variant}: {key} at max_steps {hi['max_steps']} / {lo['max_steps']} = "
+            if lo.get(key) and hi.get(key):
+                print(f"{name}: {key} at max_steps {hi['max_steps']} / {lo['max_steps']} = "
                       f"{hi[key] / lo[key]:.3f}")
-        print(f"{variant}: value_and_grad / render = {lo['ratio']:.2f} (max_steps "
-              f"{lo['max_steps']}), {hi['ratio']:.2f} (max_steps {hi['max_steps']})")
     (out / "results.json").write_text(json.dumps({"config": cfg, "rows": rows}, indent=2))
     (out / "config.toml").write_text(Path(args.config).read_text())
     print(f"wrote {out / 'results.json'}")
 
 
-def measure(cfg, variant, max_steps):
+def _on_gpu():
+    code = "import jax; print(jax.default_backend())"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    return res.stdout.strip() == "gpu"
+
+
+def spheres64():
+    """64 spheres (radius 0.3, an 8×8 grid, two Lambert materials in a checkerboard) on a
+    plane of a third, under one point light: stacked unions of one kind."""
+    import jaxrt as jr
+    from jaxrt import sdf
+    from jaxrt.bsdf import Lambert
+
+    spheres = [sdf.Translate(sdf.Sphere(0.3, material=(i + j) % 2),
+                             offset=(0.8 * (i - 3.5), 0.3, 0.8 * (j - 3.5)))
+               for i in range(8) for j in range(8)]
+    surface = sdf.Union(*spheres, sdf.Plane((0.0, 1.0, 0.0), 0.0, material=2))
+    materials = [Lambert((0.7, 0.3, 0.2)), Lambert((0.2, 0.4, 0.7)), Lambert((0.6, 0.6, 0.6))]
+    scene = jr.Scene(surface, materials, [jr.PointLight((2.0, 6.0, -3.0), (60.0, 60.0, 60.0))],
+                     background=(0.1, 0.1, 0.15))
+    camera = jr.PerspectiveCamera(eye=(0.0, 5.0, -7.0), target=(0.0, 0.0, 0.0), fov=45.0,
+                                  width=512, height=512)
+    return scene, camera, jr.RenderSettings(shadows="hard", max_depth=0)
+
+
+def measure(cfg, name, width, height, max_steps):
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -100,63 +145,81 @@ def measure(cfg, variant, max_steps):
     import jaxrt as jr
     from jaxrt import fit
 
-    scene, camera, settings = jr.config.load(ROOT / cfg["scene"], width=cfg["width"],
-                                             height=cfg["height"])
+    spec = cfg["scenes"][name]
+    if spec["file"] == "spheres64":
+        scene, camera, settings = spheres64()
+        camera = camera.with_resolution(width, height)
+    else:
+        scene, camera, settings = jr.config.load(ROOT / spec["file"], width=width, height=height)
+    overrides = {k: v for k, v in cfg.get("settings", {}).items() if not isinstance(v, dict)}
+    overrides.update(cfg.get("settings", {}).get(name, {}))
     settings = settings.replace(max_steps=max_steps, shadow_steps=max_steps,
-                                **cfg["settings"], **cfg["variant_settings"].get(variant, {}))
+                                backend=cfg["backend"], silhouette=cfg["silhouette"], **overrides)
     brighter = eqx.tree_at(lambda s: s.lights, scene,
-                           tuple(_brighter(l, 1.1) for l in scene.lights))
-
-    def loss(params):
-        sc, cam = params
-        return fit.l2_loss(jr.render(sc, cam, settings).rgb, target)
-
+                           tuple(_brighter(light, 1.1) for light in scene.lights))
     params = (scene, camera)
-    render = eqx.filter_jit(lambda p: jr.render(*p, settings).rgb).lower(params).compile()
-    target = render((brighter, camera))  # same structure: no second compile
-    t0 = time.perf_counter()
-    value_and_grad = eqx.filter_jit(eqx.filter_value_and_grad(loss)).lower(params).compile()
-    compile_grad = time.perf_counter() - t0
 
-    # Interleaved (render, value_and_grad) pairs, so that both see the same machine
-    # load; medians of each, and the median of the per-pair ratios.
-    jax.block_until_ready(render(params))
-    jax.block_until_ready(value_and_grad(params))
-    times = {"render": [], "grad": []}
+    def compiled(fn):
+        t0 = time.perf_counter()
+        c = eqx.filter_jit(fn).lower(params).compile()
+        return c, time.perf_counter() - t0
+
+    render, compile_render = compiled(lambda p: jr.render(*p, settings).rgb)
+    target = jax.block_until_ready(render((brighter, camera)))  # same structure: no recompile
+
+    def loss_with(s):
+        return lambda p: fit.l2_loss(jr.render(*p, s).rgb, target)
+
+    grad, compile_grad = compiled(eqx.filter_value_and_grad(loss_with(settings)))
+    fns = {"render": render, "grad": grad}
+    compile_ref = None
+    if cfg["reference"]:
+        fns["reference"], compile_ref = compiled(
+            eqx.filter_value_and_grad(loss_with(settings.replace(backend="jax"))))
+
+    # Interleaved turns, so that every function sees the same machine load; medians of
+    # each, and the median of the per-turn ratios to the forward render.
+    for fn in fns.values():
+        jax.block_until_ready(fn(params))
+    times = {k: [] for k in fns}
     for _ in range(cfg["repeats"]):
-        for name, fn in (("render", render), ("grad", value_and_grad)):
+        for k, fn in fns.items():
             t = time.perf_counter()
             jax.block_until_ready(fn(params))
-            times[name].append(time.perf_counter() - t)
+            times[k].append(time.perf_counter() - t)
     median = lambda xs: sorted(xs)[len(xs) // 2]  # noqa: E731
-    t_render, t_grad = median(times["render"]), median(times["grad"])
-    ratio = median([g / r for g, r in zip(times["grad"], times["render"])])
-    value, grads = value_and_grad(params)
+    ratio = lambda k: median([g / r for g, r in zip(times[k], times["render"])])  # noqa: E731
+    value, grads = grad(params)
     leaves = [x for x in jax.tree_util.tree_leaves(grads) if eqx.is_array(x)]
     finite = all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
 
-    def temp(compiled):
-        m = getattr(compiled, "compiled", compiled).memory_analysis()  # eqx.Compiled wraps jax's
+    def temp(c):
+        m = getattr(c, "compiled", c).memory_analysis()  # eqx.Compiled wraps jax's
         return None if m is None else int(m.temp_size_in_bytes)
 
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
     stats = device.memory_stats() if hasattr(device, "memory_stats") else None
-    return {
-        "variant": variant, "max_steps": max_steps, "device": device.device_kind,
-        "width": cfg["width"], "height": cfg["height"],
-        "render_s": t_render, "value_and_grad_s": t_grad, "ratio": ratio,
+    row = {
+        "scene": name, "width": width, "height": height, "max_steps": max_steps,
+        "backend": settings.backend, "silhouette": settings.silhouette,
+        "device": device.device_kind, "jax": jax.__version__,
+        "render_s": median(times["render"]), "value_and_grad_s": median(times["grad"]),
+        "ratio": ratio("grad"), "compile_render_s": compile_render,
         "compile_grad_s": compile_grad, "render_temp_bytes": temp(render),
-        "grad_temp_bytes": temp(value_and_grad),
+        "grad_temp_bytes": temp(grad),
         "peak_device_bytes": None if not stats else stats.get("peak_bytes_in_use"),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
-        "gradient_leaves": int(sum(x.size for x in leaves)), "finite": finite,
+        "gradient_floats": int(sum(x.size for x in leaves)), "finite": finite,
         "loss": float(value),
     }
+    if cfg["reference"]:
+        row.update(reference_s=median(times["reference"]), reference_ratio=ratio("reference"),
+                   compile_reference_s=compile_ref)
+    return row
 
 
 def _brighter(light, factor):
-    """`light` with its intensity (point) or irradiance (directional) scaled by `factor`;
-    positions and directions unchanged."""
+    """`light` with its intensity (point) or irradiance (directional) scaled by `factor`."""
     import equinox as eqx
 
     field = "intensity" if hasattr(light, "intensity") else "irradiance"
@@ -165,11 +228,17 @@ def _brighter(light, factor):
 
 def _format(row):
     mb = lambda b: "-" if b is None else f"{b / 2**20:.1f} MiB"  # noqa: E731
-    return (f"{row['variant']:>14s} max_steps {row['max_steps']:>5d}: render {row['render_s']*1e3:8.1f} ms"
-            f"  value_and_grad {row['value_and_grad_s']*1e3:8.1f} ms  ratio {row['ratio']:5.2f}"
-            f"  grad temp {mb(row['grad_temp_bytes'])}  render temp {mb(row['render_temp_bytes'])}"
-            f"  peak {mb(row['peak_device_bytes'])}  peak RSS {mb(row['peak_rss_bytes'])}  ({row['gradient_leaves']} gradient floats,"
-            f" finite: {row['finite']}, {row['device']})")
+    ref = ""
+    if "reference_s" in row:
+        ref = (f"  jax-path grad {row['reference_s']*1e3:9.1f} ms ({row['reference_ratio']:.1f}x,"
+               f" compile {row['compile_reference_s']:.0f} s)")
+    return (f"{row['scene']:>10s} {row['width']}x{row['height']} max_steps {row['max_steps']:>5d}:"
+            f" forward {row['render_s']*1e3:9.2f} ms  value_and_grad {row['value_and_grad_s']*1e3:9.2f} ms"
+            f"  ratio {row['ratio']:5.2f}{ref}  compile {row['compile_render_s']:.0f} s / "
+            f"{row['compile_grad_s']:.0f} s  grad temp {mb(row['grad_temp_bytes'])}"
+            f"  peak {mb(row['peak_device_bytes'])}  peak RSS {mb(row['peak_rss_bytes'])}"
+            f"  ({row['gradient_floats']} floats, finite: {row['finite']}, {row['device']},"
+            f" jax {row['jax']})")
 
 
 if __name__ == "__main__":

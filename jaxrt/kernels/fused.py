@@ -13,9 +13,10 @@ normal, shading, shadow rays) for every sample (px, py), with one of two backend
   (so changing them never recompiles). Without a GPU it runs in Pallas' interpret mode
   (slow; for tests).
 
-Both compute the forward pass only. Gradients come from `reference` (the vmapped
-`jax` path) through a custom VJP: its backward pass differentiates the reference
-program, which gives the implicit-function-theorem gradients of the hit points.
+Both compute the forward pass only. Called directly, gradients come from `reference`
+(the vmapped `jax` path) through a custom VJP; `jaxrt.render` records the marches in
+the kernel instead and differentiates a loop-free replay (`render._recorded`), so this
+VJP is not used there.
 """
 
 import functools
@@ -152,8 +153,12 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
                     f"{backend} kernel would compile for minutes")
             jax.eval_shape(lambda d, s: run(d, s), jax.tree_util.tree_map(abstract, dyn),
                            abstract(samples))
-        except Unsupported as e:
-            warnings.warn(f"RenderSettings(backend='auto'): {e}; rendering with backend='jax'",
+        except Exception as e:  # noqa: BLE001  any lane failure (also a JAX version's
+            # primitive parameters that lanes do not know) falls back, with one line
+            reason = (str(e).strip().splitlines() or [""])[0]
+            if not isinstance(e, Unsupported):
+                reason = f"{type(e).__name__} {reason}".strip()
+            warnings.warn(f"RenderSettings(backend='auto'): {reason}; rendering with backend='jax'",
                           stacklevel=3)
             return reference(params, samples)
     return run(dyn, samples)

@@ -789,7 +789,7 @@ def _while(eqn, ins, ctx):
 
     def cond_lanes(objs):
         # a batched while (vmap inside the one-ray program) has a predicate of shape S
-        # and a body that masks itself: it runs while any element is true
+        # (the leading axes of every carry): it runs while any element is true
         (c,) = _eval_closed(cond_j, list(cconsts) + objs, ctx)
         return _fold(list(c.reshape(-1)), "or", np.dtype(bool), ctx)
 
@@ -797,6 +797,11 @@ def _while(eqn, ins, ctx):
         flat, active = state
         objs = unpack(flat)
         new = _eval_closed(body_j, list(bconsts) + objs, ctx)
+        (c,) = _eval_closed(cond_j, list(cconsts) + objs, ctx)
+        if c.shape != ():
+            # ... and only its elements whose predicate holds take a step (the body does
+            # not mask itself: XLA's lowering of a batched while selects per element)
+            new = [_select_elements(c, n, o) for n, o in zip(new, objs)]
         new_flat = pack(new)
         flat = [jnp.where(active, n, o) for n, o in zip(new_flat, flat)]
         still = cond_lanes(unpack(flat))
@@ -825,6 +830,15 @@ def _while(eqn, ins, ctx):
     results = iter(unpack(flat))
     # carries that nothing reads keep their initial value (placeholders)
     return [next(results) if k else x for x, k in zip(full_init, keep)]
+
+
+def _select_elements(pred, new, old):
+    """new where pred else old, elementwise over pred's shape S, the leading axes of the
+    object arrays new and old (shape S + rest)."""
+    out = _obj(new.shape)
+    for i in np.ndindex(*new.shape):
+        out[i] = jnp.where(pred[i[:pred.ndim]], new[i], old[i])
+    return out
 
 
 def _scan(eqn, ins, ctx):

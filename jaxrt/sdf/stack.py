@@ -28,6 +28,8 @@ still grow linearly with n."""
 import jax
 import jax.numpy as jnp
 
+from .base import SDF, Primitive
+
 # Groups with at least this many members are stacked; smaller ones stay a loop.
 # From experiments/bench/scaling.py --only primitives (CPU, 32×32, spheres in two
 # groups): groups of 2 and 4 compile slower stacked than looped (6.1 vs 4.0 s, 7.1 vs
@@ -36,13 +38,50 @@ import jax.numpy as jnp
 STACK_THRESHOLD = 8
 
 
+class _Tagged(SDF):
+    """A primitive whose material index is a leaf (int32) rather than a static field,
+    so that children that differ only in their materials are one kind of child."""
+
+    child: Primitive
+    material: jnp.ndarray
+
+    def eval(self, p):
+        return self.child.distance(p), self.material
+
+    def lipschitz(self):
+        return self.child.lipschitz()
+
+
+def _untag(prim):
+    """A copy of the primitive `prim` with material 0 (static fields cannot be set
+    through the pytree)."""
+    copy = object.__new__(type(prim))
+    copy.__dict__.update(prim.__dict__)
+    object.__setattr__(copy, "material", 0)
+    return copy
+
+
+def material_as_data(child):
+    """`child` with every primitive's static material index made a leaf (`_Tagged`):
+    the same function, whose structure no longer depends on the materials."""
+    def tag(x):
+        if isinstance(x, Primitive):
+            return _Tagged(_untag(x), jnp.asarray(x.material, jnp.int32))
+        return x
+
+    return jax.tree_util.tree_map(tag, child, is_leaf=lambda x: isinstance(x, Primitive))
+
+
 def group_by_structure(children):
-    """[(indices, members)] of `children` grouped by pytree structure, in the order of
-    their first member (static: structures only)."""
+    """[(indices, members)] of `children` grouped by pytree structure, their material
+    indices made data (`material_as_data`: children that differ only in their
+    materials are one group), in the order of their first member (static: structures
+    only). The members are the tagged children."""
     groups = {}
     for i, child in enumerate(children):
-        groups.setdefault(jax.tree_util.tree_structure(child), []).append(i)
-    return [(tuple(ix), [children[i] for i in ix]) for ix in groups.values()]
+        tagged = material_as_data(child)
+        groups.setdefault(jax.tree_util.tree_structure(tagged), []).append((i, tagged))
+    return [(tuple(i for i, _ in g), [c for _, c in g]) for g in groups.values()]
 
 
 def stack_nodes(members):

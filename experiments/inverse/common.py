@@ -1,0 +1,344 @@
+"""Shared code of the inverse-rendering studies (experiments/inverse/*.py).
+
+A study is a `Study`: the true parameter values (a dict of arrays), `build(params) ->
+(scene, cameras)` (cameras stacked on a view axis, `jaxrt.views`), the transforms that
+keep values legal, the scale each parameter's error is measured against, and the
+study's headline metrics with their targets. `run` does the rest, the same way for
+every study:
+
+1. targets: `jaxrt.render_views` of the true scene with the target settings (point
+   sampling at 16 spp, silhouette off: the box-filtered truth);
+2. start: every parameter perturbed by up to `perturbation` (10 %) of its error scale,
+   with a fixed seed;
+3. fit: Adam (`jaxrt.fit.adam`, cosine schedule, per-group rates) on the L2 image loss
+   with the fit settings (silhouette on where outlines matter), through
+   `jaxrt.fit.fit` with a checkpoint in the output folder (a rerun resumes);
+4. outputs under the output folder: results.json and results.md (every parameter:
+   truth, start, fit, error; the metrics and whether they meet their targets; timing
+   and machine), curves.png (loss and parameter errors against steps), grid.png (rows
+   of views: target | start | fit | |fit − target|), fitted.toml (the fitted scene with
+   view 0 and the target settings, `jaxrt.config_writer`), fitted.exr/.png (its render),
+   config.json (the resolved config).
+
+Error of a parameter element: |fit − truth| / max(|truth|, floor), floor the
+parameter's entry in `Study.floors` (0: purely relative; positions use a length so that
+coordinates near 0 are not measured against 0).
+"""
+
+import argparse
+import json
+import os
+import platform
+import time
+import tomllib
+from pathlib import Path
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxrt as jr
+from jaxrt.config import ConfigError
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+# --------------------------------------------------------------------------- config
+
+
+def parse_args(name, argv=None, doc=None):
+    p = argparse.ArgumentParser(prog=f"experiments/inverse/{name}.py", description=doc)
+    p.add_argument("--config", default=str(ROOT / "configs" / "experiments" / f"inverse_{name}.toml"))
+    p.add_argument("--out", default=None, help=f"output folder (default results/inverse/{name}/)")
+    p.add_argument("--quick", action="store_true", help="the small version (< 3 min on 2 CPU cores)")
+    p.add_argument("--size", type=int, default=None, help="image width = height (overrides the config)")
+    p.add_argument("--views", type=int, default=None, help="number of views (overrides the config)")
+    p.add_argument("--steps", type=int, default=None, help="Adam steps (overrides the config)")
+    p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
+    args = p.parse_args(argv)
+    cfg = load_config(args.config, args.quick)
+    for key, value in (("size", args.size), ("views", args.views), ("steps", args.steps)):
+        if value is not None:
+            cfg["run"][key] = value
+    out = Path(args.out) if args.out else ROOT / "results" / "inverse" / name
+    return cfg, out, args
+
+
+def _merge(base, over):
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(base.get(k), dict):
+            _merge(base[k], v)
+        else:
+            base[k] = v
+    return base
+
+
+def load_config(path, quick=False):
+    """The study's TOML config; with `quick`, its [quick] table merged over the rest."""
+    path = Path(path)
+    try:
+        cfg = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise ConfigError(f"{path}: cannot read the config ({e})") from None
+    overrides = cfg.pop("quick", {})
+    if quick:
+        _merge(cfg, overrides)
+    cfg["quick"] = bool(quick)
+    for table in ("run", "fit", "target_settings", "fit_settings", "targets"):
+        if not isinstance(cfg.get(table), dict):
+            raise ConfigError(f"{path}: {table} = {cfg.get(table, '<missing>')!r}, expected a table")
+    run = cfg["run"]
+    for key in ("size", "views", "steps"):
+        if not (isinstance(run.get(key), int) and run[key] >= 1):
+            raise ConfigError(f"{path}: run.{key} = {run.get(key, '<missing>')!r}, expected an integer ≥ 1")
+    for key in ("learning_rate", "perturbation"):
+        if not isinstance(cfg["fit"].get(key), (int, float)) or cfg["fit"][key] < 0:
+            raise ConfigError(f"{path}: fit.{key} = {cfg['fit'].get(key, '<missing>')!r}, expected a number ≥ 0")
+    for table in ("target_settings", "fit_settings"):
+        try:
+            jr.RenderSettings(**cfg[table])
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"{path}: {table}: {e}") from None
+    return cfg
+
+
+# --------------------------------------------------------------------------- study
+
+
+class Study(NamedTuple):
+    """One inverse problem.
+
+    name       the study's name (output folder, tables).
+    truth      name → array: the true values of the free parameters.
+    build      params → (scene, cameras stacked on a view axis).
+    transforms name → `jaxrt.fit.Transform` (a prefix of truth; None: identity).
+    floors     name → error floor (see the module docstring; missing: 0).
+    rates      name → per-group learning-rate scale for Adam (missing: 1).
+    metrics    (fitted params, truth) → dict of headline metrics (lower is better),
+               compared with the config's [targets] of the same names.
+    """
+
+    name: str
+    truth: dict
+    build: Callable
+    transforms: dict
+    floors: dict = {}
+    rates: dict = {}
+    metrics: Callable | None = None
+
+
+def element_names(params):
+    """['radius', 'offset[0]', ...] for every scalar of a dict of arrays, in leaf order."""
+    out = []
+    for k in params:
+        a = np.asarray(params[k])
+        out += [k] if a.ndim == 0 else [f"{k}[{','.join(map(str, i))}]" for i in np.ndindex(a.shape)]
+    return out
+
+
+def element_errors(params, truth, floors):
+    """Errors of every scalar (module docstring), in `element_names` order."""
+    out = []
+    for k in truth:
+        f, t = np.asarray(params[k], float).ravel(), np.asarray(truth[k], float).ravel()
+        out.append(np.abs(f - t) / np.maximum(np.abs(t), floors.get(k, 0.0) or 1e-12))
+    return np.concatenate(out)
+
+
+def perturb(truth, floors, fraction, seed):
+    """Every scalar moved by u · fraction · max(|x|, floor), u uniform in [−1, 1]."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for k, v in truth.items():
+        a = np.asarray(v, float)
+        u = rng.uniform(-1.0, 1.0, a.shape)
+        out[k] = jnp.asarray(a + u * fraction * np.maximum(np.abs(a), floors.get(k, 0.0)))
+    return out
+
+
+def settings(cfg, which):
+    return jr.RenderSettings(**cfg[which])
+
+
+def machine():
+    dev = jax.devices()[0]
+    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(), "jax": jax.__version__, "backend": jax.default_backend(),
+            "device": getattr(dev, "device_kind", str(dev))}
+
+
+# --------------------------------------------------------------------------- run
+
+
+def run(study, cfg, out, fresh=False):
+    """Fit `study` as configured by `cfg`, write the outputs under `out`; returns the
+    results dict (also results.json)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(cfg, indent=2, default=str))
+    f, r = cfg["fit"], cfg["run"]
+    target_settings, fit_settings = settings(cfg, "target_settings"), settings(cfg, "fit_settings")
+    t0 = time.perf_counter()
+    scene, cameras = study.build(study.truth)
+    targets = jr.render_views(scene, cameras, target_settings).rgb
+    targets.block_until_ready()
+    t_target = time.perf_counter() - t0
+    start = perturb(study.truth, study.floors, f["perturbation"], cfg.get("seed", 0))
+    weights = None
+
+    def loss(p, _):
+        scene, cameras = study.build(p)
+        return jr.fit.l2_loss(jr.render_views(scene, cameras, fit_settings).rgb, targets, weights)
+
+    steps = r["steps"]
+    rates = {k: study.rates.get(k, 1.0) for k in study.truth}
+    optimiser = jr.fit.adam(f["learning_rate"], steps, warmup=f.get("warmup", 0),
+                            end_factor=f.get("end_factor", 0.01), scales=rates)
+    errors, timing = [], {}
+    record_every = max(1, steps // 100)
+
+    def callback(info):
+        if info.step == 1:
+            timing["first_step"] = time.perf_counter() - t1
+        if info.step % record_every == 0 or info.step == steps:
+            errors.append((info.step, element_errors(info.params, study.truth, study.floors)))
+
+    checkpoint = out / "checkpoint.npz"
+    if fresh and checkpoint.exists():
+        checkpoint.unlink()
+    errors.append((0, element_errors(start, study.truth, study.floors)))
+    t1 = time.perf_counter()
+    result = jr.fit.fit(loss, start, optimiser, max_steps=steps, transforms=study.transforms,
+                        callback=callback, checkpoint=str(checkpoint),
+                        checkpoint_every=f.get("checkpoint_every", 50), progress=True)
+    t_fit = time.perf_counter() - t1
+    fitted = {k: np.asarray(v) for k, v in result.params.items()}
+    err = element_errors(fitted, study.truth, study.floors)
+    metrics = {"max_parameter_error": float(err.max())}
+    if study.metrics is not None:
+        metrics.update({k: float(v) for k, v in study.metrics(fitted, study.truth).items()})
+    start_metrics = {"max_parameter_error": float(element_errors(start, study.truth, study.floors).max())}
+    if study.metrics is not None:
+        start_metrics.update({k: float(v) for k, v in study.metrics(start, study.truth).items()})
+    met = {k: bool(metrics[k] <= v) for k, v in cfg["targets"].items() if k in metrics}
+
+    # images: start and fit with the target settings (what a viewer compares)
+    start_rgb = jr.render_views(*study.build(start), target_settings).rgb
+    fit_scene, fit_cameras = study.build(result.params)
+    fit_images = jr.render_views(fit_scene, fit_cameras, target_settings)
+    one = jr.views.view(fit_cameras, 0)
+    jr.io.write_exr(out / "fitted.exr", jax.tree.map(lambda x: x[0], fit_images))
+    jr.io.write_png(out / "fitted.png", fit_images.rgb[0])
+    jr.config_writer.dump(out / "fitted.toml", fit_scene, one, target_settings)
+    image_grid(out / "grid.png", np.asarray(targets), np.asarray(start_rgb), np.asarray(fit_images.rgb),
+               rows=cfg.get("grid_rows", 4))
+    names = element_names(study.truth)
+    curves(out / "curves.png", result.history, errors, names, study.name)
+    rows = [{"name": n, "truth": float(t), "start": float(s), "fit": float(v), "error": float(e)}
+            for n, t, s, v, e in zip(names, _flat(study.truth), _flat(start), _flat(fitted), err)]
+    results = {
+        "study": study.name, "quick": cfg["quick"], "size": r["size"], "views": int(targets.shape[0]),
+        "steps": int(result.steps), "stopped": result.result, "loss_start": float(result.history[0]),
+        "loss_fit": float(result.loss), "metrics": metrics, "metrics_start": start_metrics,
+        "targets": cfg["targets"], "met": met,
+        "seconds": {"targets": round(t_target, 2), "first_step": round(timing.get("first_step", float("nan")), 2),
+                    "fit": round(t_fit, 2), "total": round(time.perf_counter() - t0, 2)},
+        "machine": machine(), "parameters": rows,
+        "error_history": {"steps": [s for s, _ in errors], "max": [float(e.max()) for _, e in errors]},
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    md = markdown(results)
+    (out / "results.md").write_text(md)
+    print(md)
+    return results
+
+
+def _flat(params):
+    return np.concatenate([np.asarray(v, float).ravel() for v in params.values()])
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def markdown(res):
+    lines = [f"# inverse/{res['study']}{' (quick)' if res['quick'] else ''}", "",
+             f"{res['views']} views of {res['size']}×{res['size']}, {res['steps']} Adam steps "
+             f"(stopped: {res['stopped']}); loss {res['loss_start']:.3e} → {res['loss_fit']:.3e}; "
+             f"{res['seconds']['total']} s in all ({res['seconds']['first_step']} s first step with "
+             f"compilation, {res['seconds']['fit']} s fit) on {res['machine']['device']} "
+             f"({res['machine']['backend']}, {res['machine']['cpu_count']} CPUs).", "",
+             "| metric | start | fit | target | met |", "|---|---|---|---|---|"]
+    for k, v in res["metrics"].items():
+        t = res["targets"].get(k)
+        lines.append(f"| {k} | {res['metrics_start'].get(k, float('nan')):.4g} | {v:.4g} | "
+                     f"{'' if t is None else t} | {'' if t is None else ('yes' if res['met'][k] else 'NO')} |")
+    lines += ["", "| parameter | truth | start | fit | error |", "|---|---|---|---|---|"]
+    for p in res["parameters"]:
+        lines.append(f"| {p['name']} | {p['truth']:.6g} | {p['start']:.6g} | {p['fit']:.6g} | {p['error']:.2e} |")
+    return "\n".join(lines) + "\n"
+
+
+def _display(rgb):
+    return np.clip(jr.io.srgb_encode(np.clip(rgb, 0.0, 1.0)), 0.0, 1.0)
+
+
+def image_grid(path, targets, start, fitted, rows=4):
+    """Rows of views: target | start | fit | |fit − target| (mean over channels, the
+    colour scale's maximum printed on each row)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = min(rows, targets.shape[0])
+    idx = np.linspace(0, targets.shape[0] - 1, n).round().astype(int)
+    fig, axes = plt.subplots(n, 4, figsize=(6.4, 1.65 * n + 0.3), squeeze=False)
+    for row, i in enumerate(idx):
+        err = np.abs(fitted[i] - targets[i]).mean(-1)
+        vmax = max(float(err.max()), 1e-6)
+        for col, (img, title) in enumerate(((targets[i], "target"), (start[i], "start"),
+                                            (fitted[i], "fit"), (None, "|fit − target|"))):
+            ax = axes[row, col]
+            if img is None:
+                ax.imshow(err, cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
+                ax.set_xlabel(f"max {vmax:.2g}", fontsize=6, labelpad=1)
+            else:
+                ax.imshow(_display(img), interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(title, fontsize=8)
+        axes[row, 0].set_ylabel(f"view {i}", fontsize=7)
+    fig.tight_layout(pad=0.3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def curves(path, history, errors, names, title):
+    """Loss and parameter errors (max and each element, thin) against the step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(8.0, 3.0))
+    a.semilogy(np.arange(len(history)), np.maximum(history, 1e-30), lw=1.2)
+    a.set_xlabel("step")
+    a.set_ylabel("L2 image loss")
+    a.set_title(f"{title}: loss", fontsize=9)
+    a.grid(alpha=0.3, which="both")
+    steps = np.array([s for s, _ in errors])
+    e = np.maximum(np.stack([x for _, x in errors]), 1e-9)
+    for j in range(e.shape[1]):
+        b.semilogy(steps, e[:, j], lw=0.5, alpha=0.35, color="C0")
+    b.semilogy(steps, e.max(axis=1), lw=1.6, color="C3", label="max")
+    b.semilogy(steps, np.median(e, axis=1), lw=1.2, color="C2", label="median")
+    b.set_xlabel("step")
+    b.set_ylabel("parameter error")
+    b.set_title(f"{title}: {len(names)} parameters", fontsize=9)
+    b.legend(fontsize=7)
+    b.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,159 @@
+"""The sphere-tracing loop and its options (Hart 1996; the notes, "Ray marching implicit
+surfaces"). `jaxrt.trace.sphere_trace` calls it through the tape and polishes its root.
+
+    t ← t + f(o + t d) / L  from t = 0, until f < ε(t) (hit), t > t_max (miss) or the
+    budget runs out (exhausted),
+
+with over-relaxation (Keinert et al. 2014) and the near-miss search of
+`jaxrt.silhouette` folded in. A ray that starts inside a surface marches on |f|.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ..vecmath import safe_div
+from .options import check_options
+
+
+@dataclasses.dataclass(frozen=True)
+class SphereTracing:
+    """Options of a sphere-traced ray (the fields of `RenderSettings` that it reads).
+
+    max_steps        step budget.
+    hit_epsilon      absolute hit threshold ε (world units).
+    pixel_epsilon    hit threshold relative to the pixel cone: ε(t) = hit_epsilon +
+                     pixel_epsilon · r(t).
+    max_distance     the ray misses beyond it (unless the call gives `t_max`).
+    over_relaxation  ω of enhanced sphere tracing (1 = plain).
+    newton_steps     Newton steps that polish a hit (and carry its implicit gradient).
+    root_solver      "newton" or "optimistix" (`jaxrt.trace.polish_root`).
+    """
+
+    max_steps: int = 128
+    hit_epsilon: float = 1e-4
+    pixel_epsilon: float = 0.0
+    max_distance: float = 100.0
+    over_relaxation: float = 1.0
+    newton_steps: int = 2
+    root_solver: str = "newton"
+
+    def __post_init__(self):
+        check_options(self, max_steps=("int", 1), hit_epsilon=("num>", 0),
+                      pixel_epsilon=("num", 0), max_distance=("num>", 0),
+                      newton_steps=("int", 0))
+
+    @classmethod
+    def of(cls, settings, **changes):
+        """The options of `settings` (a `RenderSettings` or a `SphereTracing`), changed."""
+        values = {f.name: getattr(settings, f.name) for f in dataclasses.fields(cls)}
+        return cls(**{**values, **changes})
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+
+def hit_epsilon(settings, t, cone):
+    """ε(t) = hit_epsilon + pixel_epsilon · r(t), with r(t) = cone[0] + cone[1] · t."""
+    return settings.hit_epsilon + settings.pixel_epsilon * (cone[0] + cone[1] * t)
+
+
+def march(sdf, origin, direction, settings, cone, t_max):
+    """The bounded sphere-tracing loop of one ray (no gradient); `settings` a `SphereTracing`
+    (or anything with its fields). Returns a dict of `jaxrt.Hit` fields."""
+    dtype = origin.dtype
+    lipschitz = sdf.lipschitz().astype(dtype)
+    inv_lipschitz = 1.0 / lipschitz  # once per ray: a product per step, not a division
+    relax = settings.over_relaxation != 1.0  # static: plain sphere tracing needs no fall-back
+    omega0 = jnp.asarray(settings.over_relaxation, dtype)
+    start = sdf(origin)
+    sign = jnp.where(start < 0.0, -1.0, 1.0).astype(dtype)
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    zero = jnp.zeros((), dtype)
+
+    def radius_at(t):
+        return sign * sdf(origin + t * direction) * inv_lipschitz
+
+    def ratio_at(t, r):
+        # f / r(t): distance in pixel-cone radii (big where the cone has no width).
+        return safe_div(r, cone[0] + cone[1] * t, big)
+
+    r0 = sign * start * inv_lipschitz
+    # t, r: the current sample (r = |f|/L there); t_prev, r_prev: the previous accepted
+    # sample (over-relaxation); last_*: the previous accepted sample for the near-miss
+    # search, last_lo the sample before it; best_*: the nearest near miss so far.
+    init = dict(t=zero, r=r0, steps=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool),
+                hit=jnp.zeros((), bool), last=big, last_t=zero, last_r=r0, last_lo=zero,
+                best=big, best_t=zero, best_r=r0, best_lo=zero, best_hi=zero)
+    if relax:
+        init.update(t_prev=zero, r_prev=r0, omega=omega0)
+
+    def cond(s):
+        return (~s["done"]) & (s["steps"] < settings.max_steps)
+
+    def body(s):
+        t, r = s["t"], s["r"]
+        eps = hit_epsilon(settings, t, cone)
+        new = dict(s)
+        fail = None  # ω = 1: no step can fail, and the selects below vanish at trace time
+        if relax:
+            # Over-relaxation fall-back (Keinert et al. 2014): if the unbounding spheres
+            # of the previous and current samples do not overlap, the long step may have
+            # skipped a surface: return to the safe step from the previous sample.
+            t_prev, r_prev, omega = s["t_prev"], s["r_prev"], s["omega"]
+            fail = (omega > 1.0) & (r + r_prev < t - t_prev) & (s["steps"] > 0)
+
+        def unless_fail(a, b):
+            return b if fail is None else jnp.where(fail, a, b)
+
+        def accepted(x):
+            return x if fail is None else (~fail) & x
+
+        is_hit = accepted(r < eps)
+        # Near misses: when f/r grows again, the previous sample was a local minimum.
+        ratio = ratio_at(t, r)
+        rising = accepted(ratio > s["last"])
+        better = rising & (s["last"] < s["best"])
+        new["best"] = jnp.where(better, s["last"], s["best"])
+        new["best_t"] = jnp.where(better, s["last_t"], s["best_t"])
+        new["best_r"] = jnp.where(better, s["last_r"], s["best_r"])
+        new["best_lo"] = jnp.where(better, s["last_lo"], s["best_lo"])
+        new["best_hi"] = jnp.where(better, t, s["best_hi"])
+        new["last"] = unless_fail(s["last"], ratio)
+        new["last_t"] = unless_fail(s["last_t"], t)
+        new["last_r"] = unless_fail(s["last_r"], r)
+        new["last_lo"] = unless_fail(s["last_lo"], s["last_t"])
+        t_next = unless_fail(t_prev + r_prev, t + omega * r) if relax else t + r
+        escaped = (~is_hit) & (t_next > t_max)
+        done = is_hit | escaped
+        new["t"] = jnp.where(done, t, t_next)
+        new["r"] = jnp.where(done, r, radius_at(jnp.minimum(new["t"], t_max)))
+        if relax:
+            new["omega"] = unless_fail(1.0, omega).astype(dtype)
+            new["t_prev"] = jnp.where(done, t_prev, unless_fail(t_prev, t))
+            new["r_prev"] = jnp.where(done, r_prev, unless_fail(r_prev, r))
+        new["steps"] = s["steps"] + 1
+        new["done"] = done
+        new["hit"] = is_hit
+        return new
+
+    s = jax.lax.while_loop(cond, body, init)
+    t, r, done = s["t"], s["r"], s["done"]
+    # A ray whose budget ran out while already within epsilon still counts as a hit.
+    hit = s["hit"] | ((~done) & (r < hit_epsilon(settings, t, cone)))
+    exhausted = (~done) & (~hit)
+    # A ray that did not hit ends with a near miss: the smaller of its last two samples
+    # (a budget that ran out leaves one sample that the loop did not examine).
+    final = ratio_at(t, r)
+    use_final = (~hit) & (~done) & (final < s["last"]) & (final < s["best"])
+    use_last = (~hit) & (~use_final) & (s["last"] < s["best"])
+    best_t = jnp.where(use_final, t, jnp.where(use_last, s["last_t"], s["best_t"]))
+    best_r = jnp.where(use_final, r, jnp.where(use_last, s["last_r"], s["best_r"]))
+    lo = jnp.where(use_final, s["last_t"], jnp.where(use_last, s["last_lo"], s["best_lo"]))
+    hi = jnp.where(use_final, t, jnp.where(use_last, t, s["best_hi"]))
+    return dict(
+        t=jnp.where(hit, t, jnp.asarray(t_max, dtype)), hit=hit, steps=s["steps"],
+        inside=start < 0.0, exhausted=exhausted, closest_t=best_t,
+        closest_d=best_r * lipschitz * sign, closest_bracket=jnp.stack([lo, hi]),
+    )

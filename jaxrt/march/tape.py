@@ -1,0 +1,149 @@
+"""The tape: what the marches of a render write, so that a loop-free program can replay them.
+
+A render's per-sample program (`integrator.trace_radiance`, `silhouette.blend`) calls
+marches: bounded loops with no gradient (sphere tracing, soft shadows, height fields,
+the silhouette searches). Each march is called through `march(fn, *args)`, and the tape
+decides what that call does:
+
+- no tape (`off`, the default): `fn(*args)` runs, as in any JAX program;
+- `recording()`: `fn(*args)` runs and its result (no gradient) is appended to the tape,
+  in the static order of the program;
+- `replaying(entries)`: nothing runs; the next entry of the tape is returned.
+
+So the same Python program, run once recording (in the fast lane-wise kernels, with
+no gradient) and once replaying (plain vmapped `jnp` over the image, no loop left),
+computes the same values, and the replay is differentiable: everything outside the
+marches (Newton steps at the recorded roots, normals, shading, penumbrae at their
+recorded minima) carries gradients (`jaxrt.render`).
+
+Marches inside `jax.vmap` or `lax.scan` write tracers of that transformation, which
+must leave it through its outputs: the program calls `tape.vmap(fn)` and `tape.scan`
+instead, which run `fn` under a sub-tape and return (recording) or take (replaying)
+its entries as batched outputs/inputs. The entries of a tape are a list of pytrees of
+arrays, one per march (a sub-tape is one entry: the list of its entries, batched).
+"""
+
+import contextlib
+import threading
+
+import jax
+
+_STATE = threading.local()
+
+
+class Tape:
+    """The entries of one trace of the per-sample program (`mode` "record" or "replay")."""
+
+    def __init__(self, mode, entries=None):
+        self.mode = mode
+        self.entries = [] if entries is None else list(entries)
+        self.position = 0
+
+    def take(self):
+        if self.position >= len(self.entries):
+            raise RuntimeError("jaxrt.march.tape: the replayed program reads more marches "
+                               "than were recorded (the program differs from the record)")
+        entry = self.entries[self.position]
+        self.position += 1
+        return entry
+
+    def check_consumed(self):
+        if self.mode == "replay" and self.position != len(self.entries):
+            raise RuntimeError(f"jaxrt.march.tape: {len(self.entries)} marches recorded, "
+                               f"{self.position} replayed (the program differs from the record)")
+
+
+def current():
+    """The active `Tape`, or None."""
+    return getattr(_STATE, "tape", None)
+
+
+@contextlib.contextmanager
+def _using(tape):
+    previous = current()
+    _STATE.tape = tape
+    try:
+        yield tape
+    finally:
+        _STATE.tape = previous
+
+
+def recording():
+    """Context: marches run and append their results to a fresh tape (yielded)."""
+    return _using(Tape("record"))
+
+
+@contextlib.contextmanager
+def replaying(entries):
+    """Context: marches return the `entries` of a recording, in order; all must be read."""
+    with _using(Tape("replay", entries)) as tape:
+        yield tape
+    tape.check_consumed()
+
+
+def off():
+    """Context: marches run and nothing is recorded (abstract evaluations, nested marches)."""
+    return _using(None)
+
+
+def march(fn, *args):
+    """`fn(*args)` (a march: a pytree of arrays, no gradient) through the active tape."""
+    tape = current()
+    if tape is not None and tape.mode == "replay":
+        return tape.take()
+    with off():  # marches called by a march are part of it
+        out = jax.tree_util.tree_map(jax.lax.stop_gradient, fn(*args))
+    if tape is not None:
+        tape.entries.append(out)
+    return out
+
+
+def vmap(fn):
+    """`jax.vmap(fn)` (over axis 0 of every argument) whose marches are on the tape, as one
+    entry of batched sub-entries."""
+
+    def batched(*args):
+        tape = current()
+        if tape is None:
+            return jax.vmap(fn)(*args)
+        if tape.mode == "record":
+            def inner(*a):
+                with recording() as sub:
+                    out = fn(*a)
+                return out, sub.entries
+
+            out, entries = jax.vmap(inner)(*args)
+            tape.entries.append(entries)
+            return out
+
+        def inner(entries, *a):
+            with replaying(entries):
+                return fn(*a)
+
+        return jax.vmap(inner)(tape.take(), *args)
+
+    return batched
+
+
+def scan(step, init, xs):
+    """`lax.scan(step, init, xs)` whose marches are on the tape (one entry, stacked over
+    the iterations)."""
+    tape = current()
+    if tape is None:
+        return jax.lax.scan(step, init, xs)
+    if tape.mode == "record":
+        def inner(carry, x):
+            with recording() as sub:
+                carry, y = step(carry, x)
+            return carry, (y, sub.entries)
+
+        carry, (ys, entries) = jax.lax.scan(inner, init, xs)
+        tape.entries.append(entries)
+        return carry, ys
+
+    def inner(carry, x_entries):
+        x, entries = x_entries
+        with replaying(entries):
+            return step(carry, x)
+
+    return jax.lax.scan(inner, init, (xs, tape.take()))
