@@ -129,6 +129,7 @@ def test_values_and_gradients_finite_far_away_and_on_the_box():
     assert 1.0 <= np.linalg.norm(grads[4]) <= float(g.lipschitz()) + 1e-9
 
 
+@pytest.mark.slow  # two renderer compilations: ~30 s on 2 busy cores
 def test_render_matches_analytic_sphere():
     """The image of a 33³ Grid sphere against the analytic Sphere's: same coverage up to
     a few outline pixels, shading within a few percent (faceted normals)."""

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..vecmath import safe_norm
-from .base import SDF, Primitive, as_float, check_sdf, material_index
+from .base import Primitive, as_float, check_sdf, material_index
 
 
 class Grid(Primitive):
@@ -115,8 +115,8 @@ class Grid(Primitive):
         faces = []
         for axis in range(3):
             others = [a for a in range(3) if a != axis]
-            for end in (0, -1):
-                face = jnp.take(v, end if end == 0 else v.shape[axis] - 1, axis=axis)
+            for index in (0, v.shape[axis] - 1):
+                face = jnp.take(v, index, axis=axis)
                 faces.append(jnp.max(_cell_gradient_bound(face, h[jnp.array(others)])))
         tangential = jnp.max(jnp.stack(faces))
         return jnp.maximum(inside, jnp.sqrt(1.0 + tangential * tangential))
