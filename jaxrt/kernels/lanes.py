@@ -152,6 +152,7 @@ class _Ctx:
         self.unroll = unroll
         self.materialize = materialize
         self.loop_depth = 0
+        self.roll_scans = False
 
 
 def _any_lane_default(pred):
@@ -831,11 +832,18 @@ def _scan(eqn, ins, ctx):
     """`lax.scan`, unrolled: the body once per iteration on that iteration's slices of
     the scanned inputs (static slices of object arrays: free). A lane program is
     scalarised anyway, so a scan of length n is n copies of its body (as a Python loop
-    would be); `Union` scans its stacked children this way (`jaxrt.sdf.stack`)."""
+    would be). With ctx.roll_scans (the "fused" XLA backend) a scan without stacked
+    outputs stays a loop (`_scan_rolled`): one copy of its body, whatever n (`Union`'s
+    stacked children, a material taken by index, the lights of one kind)."""
     p = eqn.params
-    nc, nk, length = p["num_consts"], p["num_carry"], p["length"]
+    nc, nk = _scan_counts(p)
+    length = p["length"]
     closed = p["jaxpr"]
+    if isinstance(closed, jcore.Jaxpr):
+        closed = jcore.ClosedJaxpr(closed, ())
     consts, carry, xs = ins[:nc], list(ins[nc:nc + nk]), ins[nc + nk:]
+    if ctx.roll_scans and length > 1 and len(eqn.outvars) == nk:
+        return _scan_rolled(eqn, closed, consts, carry, xs, length, p["reverse"], ctx)
     order = range(length - 1, -1, -1) if p["reverse"] else range(length)
     ys = [None] * length
     for i in order:
@@ -848,6 +856,85 @@ def _scan(eqn, ins, ctx):
             out[i, ...] = ys[i][k]
         stacked.append(out)
     return carry + stacked
+
+
+def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
+    """A scan without stacked outputs as one `lax.scan` over lanes: each carried
+    element a [block] array (bools as int32 unless ctx.bool_carries), each scanned
+    element its `length` lanes stacked ([length] when they are shared by all rays,
+    else [length, *block]); the body is interpreted once."""
+    block = ctx.block
+    avals = [v.aval for v in eqn.outvars]
+    shapes = [a.shape for a in avals]
+    dtypes = [np.dtype(a.dtype) for a in avals]
+
+    def store_dtype(dt):
+        return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
+
+    def pack(objs):
+        return [_broadcast(_convert(x, store_dtype(dt), ctx), block, store_dtype(dt), ctx)
+                for obj, dt in zip(objs, dtypes) for x in obj.reshape(-1)]
+
+    def unpack(flat):
+        objs, k = [], 0
+        for shape, dt in zip(shapes, dtypes):
+            obj = _obj(shape)
+            ravel = obj.reshape(-1)
+            for i in range(ravel.size):
+                x = flat[k + i]
+                ravel[i] = (x != 0) if dt == np.dtype(bool) and x.dtype != np.dtype(bool) else x
+            objs.append(obj)
+            k += ravel.size
+        return objs
+
+    # scanned inputs: element idx of x over the iterations, as one array
+    xs_flat, xs_meta = [], []
+    for x, var in zip(xs, eqn.invars[len(eqn.invars) - len(xs):]):
+        dt = np.dtype(var.aval.dtype)
+        elem_shape = x.shape[1:]
+        for idx in np.ndindex(elem_shape):
+            lanes = [x[(i,) + idx] for i in range(length)]
+            if all(_is_const(v) for v in lanes):
+                xs_flat.append(np.asarray([np.asarray(v, dt) for v in lanes], dt))
+            elif all(_lane_shape(v) == () for v in lanes):
+                xs_flat.append(jnp.stack([jnp.asarray(v, dt) for v in lanes]))
+            else:
+                xs_flat.append(jnp.stack([_broadcast(v, block, dt, ctx) for v in lanes]))
+        xs_meta.append((elem_shape, dt))
+
+    def unpack_xs(flat):
+        objs, k = [], 0
+        for shape, _ in xs_meta:
+            obj = _obj(shape)
+            for idx in np.ndindex(shape):
+                obj[idx] = flat[k]
+                k += 1
+            objs.append(obj)
+        return objs
+
+    def body(flat, x_flat):
+        ctx.scopes.append({})
+        try:
+            outs = _eval_closed(closed, [*consts, *unpack(flat), *unpack_xs(x_flat)], ctx)
+        finally:
+            ctx.scopes.pop()
+        return pack(outs), None
+
+    ctx.loop_depth += 1
+    try:
+        flat, _ = lax.scan(body, pack(carry), xs_flat, length=length, reverse=reverse)
+    finally:
+        ctx.loop_depth -= 1
+    return unpack(flat)
+
+
+def _scan_counts(params):
+    """(consts, carries) of a scan equation: jax ≤ 0.10 has num_consts/num_carry, jax
+    0.11 the flat trees ft_in = (consts, carries, xs)."""
+    if "num_consts" in params:
+        return params["num_consts"], params["num_carry"]
+    consts, carry, _ = (len(list(t.vals)) for t in params["ft_in"].unpack())
+    return consts, carry
 
 
 def _prune_loop(cond_j, body_j, cconsts, bconsts, used):
@@ -1226,7 +1313,7 @@ class Uniforms:
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
                fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None,
-               bool_carries=False):
+               bool_carries=False, roll_scans=False):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -1250,6 +1337,8 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
         approximate functions (`_fast_math`).
       uniforms: a `Uniforms`, recording or replaying the values shared by all rays.
       bool_carries: loops carry boolean lanes as booleans (else as int32).
+      roll_scans: scans without stacked outputs stay loops (`_scan_rolled`: one copy
+        of the body), else they are unrolled.
 
     Returns: one object array of lanes per output of the program.
     """
@@ -1259,6 +1348,7 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     ctx.ptx = ptx
     ctx.uniforms = uniforms
     ctx.bool_carries = bool_carries
+    ctx.roll_scans = roll_scans
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
