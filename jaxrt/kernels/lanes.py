@@ -153,6 +153,9 @@ class _Ctx:
         self.materialize = materialize
         self.loop_depth = 0
         self.roll_scans = False
+        self.slice_of = {}  # id of a lane -> (array, i, lane): lane is array[i]
+        self.param_pos = {}  # id of a 0-d parameter lane -> (dtype, position in its table)
+        self.param_table = {}  # dtype -> [n] array of the program's 0-d parameter lanes
 
 
 def _any_lane_default(pred):
@@ -842,7 +845,7 @@ def _scan(eqn, ins, ctx):
     if isinstance(closed, jcore.Jaxpr):
         closed = jcore.ClosedJaxpr(closed, ())
     consts, carry, xs = ins[:nc], list(ins[nc:nc + nk]), ins[nc + nk:]
-    if ctx.roll_scans and length > 1 and len(eqn.outvars) == nk:
+    if ctx.roll_scans and length > 1:
         return _scan_rolled(eqn, closed, consts, carry, xs, length, p["reverse"], ctx)
     order = range(length - 1, -1, -1) if p["reverse"] else range(length)
     ys = [None] * length
@@ -864,9 +867,12 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
     element its `length` lanes stacked ([length] when they are shared by all rays,
     else [length, *block]); the body is interpreted once."""
     block = ctx.block
-    avals = [v.aval for v in eqn.outvars]
+    nk = len(carry)
+    avals = [v.aval for v in eqn.outvars[:nk]]
     shapes = [a.shape for a in avals]
     dtypes = [np.dtype(a.dtype) for a in avals]
+    y_avals = [v.aval for v in eqn.outvars[nk:]]
+    y_dtypes = [np.dtype(a.dtype) for a in y_avals]
 
     def store_dtype(dt):
         return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
@@ -894,8 +900,19 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
         elem_shape = x.shape[1:]
         for idx in np.ndindex(elem_shape):
             lanes = [x[(i,) + idx] for i in range(length)]
+            source = [ctx.slice_of.get(id(v)) for v in lanes]
             if all(_is_const(v) for v in lanes):
                 xs_flat.append(np.asarray([np.asarray(v, dt) for v in lanes], dt))
+            elif all(src is not None and src[0] is source[0][0] and src[1] == i
+                     for i, src in enumerate(source)) and source[0][0].dtype == dt:
+                # the stacked outputs of another rolled scan (a gradient's residuals)
+                xs_flat.append(source[0][0])
+            elif all(id(v) in ctx.param_pos for v in lanes) and \
+                    len({ctx.param_pos[id(v)][0] for v in lanes}) == 1:
+                # parameters of the program: one gather from their table (built once,
+                # outside every loop), not a stack of n lanes at every site
+                table = ctx.param_table[ctx.param_pos[id(lanes[0])][0]]
+                xs_flat.append(table[np.asarray([ctx.param_pos[id(v)][1] for v in lanes])].astype(dt))
             elif all(_lane_shape(v) == () for v in lanes):
                 xs_flat.append(jnp.stack([jnp.asarray(v, dt) for v in lanes]))
             else:
@@ -918,14 +935,29 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
             outs = _eval_closed(closed, [*consts, *unpack(flat), *unpack_xs(x_flat)], ctx)
         finally:
             ctx.scopes.pop()
-        return pack(outs), None
+        ys = [_broadcast(_convert(x, dt, ctx), block, dt, ctx)
+              for obj, dt in zip(outs[nk:], y_dtypes) for x in obj.reshape(-1)]
+        return pack(outs[:nk]), ys
 
     ctx.loop_depth += 1
     try:
-        flat, _ = lax.scan(body, pack(carry), xs_flat, length=length, reverse=reverse)
+        flat, ys_flat = lax.scan(body, pack(carry), xs_flat, length=length, reverse=reverse)
     finally:
         ctx.loop_depth -= 1
-    return unpack(flat)
+    # stacked outputs: lane i of an element is ys[i] (remembered, so that a rolled scan
+    # that scans over them takes the array itself)
+    stacked, k = [], 0
+    for aval in y_avals:
+        obj = _obj(aval.shape)
+        for idx in np.ndindex(aval.shape[1:]):
+            arr = ys_flat[k]
+            k += 1
+            for i in range(length):
+                lane = arr[i]
+                ctx.slice_of[id(lane)] = (arr, i, lane)
+                obj[(i,) + idx] = lane
+        stacked.append(obj)
+    return unpack(flat) + stacked
 
 
 def _scan_counts(params):
@@ -1349,6 +1381,15 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     ctx.uniforms = uniforms
     ctx.bool_carries = bool_carries
     ctx.roll_scans = roll_scans
+    if roll_scans:  # a table of the 0-d parameter lanes, for rolled scans to gather from
+        by_dtype = collections.defaultdict(list)
+        for a in args:
+            for x in a.reshape(-1):
+                if not _is_const(x) and _lane_shape(x) == () and id(x) not in ctx.param_pos:
+                    dt = np.dtype(x.dtype)
+                    ctx.param_pos[id(x)] = (dt, len(by_dtype[dt]))
+                    by_dtype[dt].append(x)
+        ctx.param_table = {dt: jnp.stack(xs) for dt, xs in by_dtype.items()}
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
