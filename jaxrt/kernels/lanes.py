@@ -21,7 +21,8 @@ Control flow: a `while` whose condition varies between rays becomes one loop ove
 block that runs while any lane is active; inactive lanes keep their state (the
 semantics of `vmap` of a while loop: each ray stops where it would alone, and the block
 stops when its last ray does). `cond` with a per-ray index evaluates every branch and
-selects lane-wise. Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table)
+selects lane-wise. A `scan` is unrolled, or with `roll_scans` (the "fused"
+backend) kept as one loop over lanes (`_scan_rolled`). Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table)
 becomes a chain of selects over the possible indices.
 
 The result is the same function as the one-ray program (same primitives, same order of
