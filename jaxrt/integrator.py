@@ -46,7 +46,7 @@ import numpy as np
 from .bsdf.dispatch import dispatch
 from .bsdf.scattering import reflect, refract
 from .heightfield import HeightField
-from .kinds import lookup
+from .kinds import group_by_kind, lookup, stack
 from .lights import shadow_ray
 from .march import SphereTracing, tape
 from .trace import hit_epsilon, intersect_plane, sphere_trace, surface_normal
@@ -124,6 +124,9 @@ def spawn_origin(scene, which, p, n, offset, side, steps=2):
 def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True, origin=None):
     """Σ_lights f(wo, wi) · E · cos θi · V  +  ambient, at point p with normal n (facing wo).
 
+    The sum runs over the lights of each kind in turn (a `lax.scan` over their stacked
+    parameters), the material is evaluated once per kind (`bsdf.dispatch`).
+
     f is the material's BRDF in the local frame of n; E the light's irradiance
     (I / r² for point lights); V the shadow-ray visibility. `colour` turns RGB values
     into the colour representation of the render (RGB: identity; spectral: the value
@@ -138,7 +141,8 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
     radiance = colour(dispatch(scene.materials, material, lambda m: m.ambient().astype(p.dtype)))
     if not scene.flags("has_diffuse"):
         return radiance
-    for light in scene.lights:
+
+    def step(radiance, light):
         wi, dist, irradiance = light.illuminate(p)
         cos_i = dot(wi, n)
         wi_local = to_local(wi, n)
@@ -147,7 +151,12 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
         lit = active & (cos_i > 0.0)
         dist = jnp.where(lit, dist, 0.0)
         visible = visibility(scene, origin, wi, dist, settings)
-        radiance = radiance + jnp.where(lit, colour(f) * colour(irradiance) * cos_i * visible, 0.0)
+        return radiance + jnp.where(lit, colour(f) * colour(irradiance) * cos_i * visible, 0.0), None
+
+    # One `lax.scan` over the stacked lights of each kind (point, directional): one
+    # shadow march per kind in the program, whatever the number of lights.
+    for _, lights in group_by_kind(list(scene.lights)):
+        radiance, _ = jax.lax.scan(step, radiance, stack(lights))
     return radiance
 
 

@@ -10,7 +10,8 @@ max_depth from the config).
 
     python experiments/bench/compile.py [--config configs/experiments/compile.toml]
         [--scenes showcase,spheres8,...] [--backends jax,fused] [--modes render,grad]
-        [--width W --height H] [--repeats N] [--glass-depth D] [--cache] [--out out/compile]
+        [--width W --height H] [--repeats N] [--glass-depth D] [--cache] [--eqns-only]
+        [--out out/compile]
 
 For each (scene, backend, mode): `lower_s` (trace + lower to StableHLO), `compile_s`
 (XLA), their sum `total_s`, `run_ms` (median of `repeats` calls of the compiled
@@ -45,6 +46,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int)
     ap.add_argument("--glass-depth", type=int)
     ap.add_argument("--cache", action="store_true", help="use the persistent compilation cache")
+    ap.add_argument("--eqns-only", action="store_true",
+                    help="trace only: program sizes, no compilation (fast, deterministic)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     cfg = tomllib.loads(Path(args.config).read_text())
@@ -83,7 +86,7 @@ def main(argv=None):
     for name in scenes:
         for backend in backends:
             for mode in modes:
-                row = measure(cfg, name, backend, mode)
+                row = measure(cfg, name, backend, mode, compile_=not args.eqns_only)
                 rows.append(row)
                 print(_format(row), flush=True)
                 (out_dir / "results.json").write_text(json.dumps(dict(info=info, rows=rows), indent=1))
@@ -152,7 +155,7 @@ def program(scene, camera, settings, mode):
     return jax.value_and_grad(loss), dyn
 
 
-def measure(cfg, name, backend, mode):
+def measure(cfg, name, backend, mode, compile_=True):
     import jax
 
     scene, camera, settings = SCENES[name](cfg)
@@ -161,6 +164,10 @@ def measure(cfg, name, backend, mode):
     jax.clear_caches()
     eqns = n_equations(jax.make_jaxpr(f)(dyn).jaxpr)
     jax.clear_caches()
+    if not compile_:
+        nan = float("nan")
+        return dict(scene=name, backend=backend, mode=mode, lower_s=nan, compile_s=nan,
+                    total_s=nan, run_ms=nan, eqns=eqns)
     t0 = time.perf_counter()
     lowered = jax.jit(f).lower(dyn)
     t1 = time.perf_counter()

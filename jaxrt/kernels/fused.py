@@ -231,7 +231,7 @@ def _tiles(one, dyn, samples, settings, grid):
         args = [lanes_of(leaf) for leaf in leaves]
         args += [_lane(sb[..., 0]), _lane(sb[..., 1])]
         outs = eval_lanes(closed, args, tile, unroll=UNROLL,
-                          materialize=MATERIALIZE)
+                          materialize=MATERIALIZE, roll_scans=True)
         return [stack_lanes(o, tile, sh.dtype) for o, sh in zip(outs, out_leaves)]
 
     if ty * tx == 1:

@@ -21,7 +21,8 @@ Control flow: a `while` whose condition varies between rays becomes one loop ove
 block that runs while any lane is active; inactive lanes keep their state (the
 semantics of `vmap` of a while loop: each ray stops where it would alone, and the block
 stops when its last ray does). `cond` with a per-ray index evaluates every branch and
-selects lane-wise. Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table)
+selects lane-wise. A `scan` is unrolled, or with `roll_scans` (the "fused"
+backend) kept as one loop over lanes (`_scan_rolled`). Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table)
 becomes a chain of selects over the possible indices.
 
 The result is the same function as the one-ray program (same primitives, same order of
@@ -152,6 +153,10 @@ class _Ctx:
         self.unroll = unroll
         self.materialize = materialize
         self.loop_depth = 0
+        self.roll_scans = False
+        self.slice_of = {}  # id of a lane -> (array, i, lane): lane is array[i]
+        self.param_pos = {}  # id of a 0-d parameter lane -> (dtype, position in its table)
+        self.param_table = {}  # dtype -> [n] array of the program's 0-d parameter lanes
 
 
 def _any_lane_default(pred):
@@ -845,11 +850,18 @@ def _scan(eqn, ins, ctx):
     """`lax.scan`, unrolled: the body once per iteration on that iteration's slices of
     the scanned inputs (static slices of object arrays: free). A lane program is
     scalarised anyway, so a scan of length n is n copies of its body (as a Python loop
-    would be); `Union` scans its stacked children this way (`jaxrt.sdf.stack`)."""
+    would be). With ctx.roll_scans (the "fused" XLA backend) a scan without stacked
+    outputs stays a loop (`_scan_rolled`): one copy of its body, whatever n (`Union`'s
+    stacked children, a material taken by index, the lights of one kind)."""
     p = eqn.params
-    nc, nk, length = p["num_consts"], p["num_carry"], p["length"]
+    nc, nk = _scan_counts(p)
+    length = p["length"]
     closed = p["jaxpr"]
+    if isinstance(closed, jcore.Jaxpr):
+        closed = jcore.ClosedJaxpr(closed, ())
     consts, carry, xs = ins[:nc], list(ins[nc:nc + nk]), ins[nc + nk:]
+    if ctx.roll_scans and length > 1:
+        return _scan_rolled(eqn, closed, consts, carry, xs, length, p["reverse"], ctx)
     order = range(length - 1, -1, -1) if p["reverse"] else range(length)
     ys = [None] * length
     for i in order:
@@ -862,6 +874,114 @@ def _scan(eqn, ins, ctx):
             out[i, ...] = ys[i][k]
         stacked.append(out)
     return carry + stacked
+
+
+def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
+    """A scan without stacked outputs as one `lax.scan` over lanes: each carried
+    element a [block] array (bools as int32 unless ctx.bool_carries), each scanned
+    element its `length` lanes stacked ([length] when they are shared by all rays,
+    else [length, *block]); the body is interpreted once."""
+    block = ctx.block
+    nk = len(carry)
+    avals = [v.aval for v in eqn.outvars[:nk]]
+    shapes = [a.shape for a in avals]
+    dtypes = [np.dtype(a.dtype) for a in avals]
+    y_avals = [v.aval for v in eqn.outvars[nk:]]
+    y_dtypes = [np.dtype(a.dtype) for a in y_avals]
+
+    def store_dtype(dt):
+        return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
+
+    def pack(objs):
+        return [_broadcast(_convert(x, store_dtype(dt), ctx), block, store_dtype(dt), ctx)
+                for obj, dt in zip(objs, dtypes) for x in obj.reshape(-1)]
+
+    def unpack(flat):
+        objs, k = [], 0
+        for shape, dt in zip(shapes, dtypes):
+            obj = _obj(shape)
+            ravel = obj.reshape(-1)
+            for i in range(ravel.size):
+                x = flat[k + i]
+                ravel[i] = (x != 0) if dt == np.dtype(bool) and x.dtype != np.dtype(bool) else x
+            objs.append(obj)
+            k += ravel.size
+        return objs
+
+    # scanned inputs: element idx of x over the iterations, as one array
+    xs_flat, xs_meta = [], []
+    for x, var in zip(xs, eqn.invars[len(eqn.invars) - len(xs):]):
+        dt = np.dtype(var.aval.dtype)
+        elem_shape = x.shape[1:]
+        for idx in np.ndindex(elem_shape):
+            lanes = [x[(i,) + idx] for i in range(length)]
+            source = [ctx.slice_of.get(id(v)) for v in lanes]
+            if all(_is_const(v) for v in lanes):
+                xs_flat.append(np.asarray([np.asarray(v, dt) for v in lanes], dt))
+            elif all(src is not None and src[0] is source[0][0] and src[1] == i
+                     for i, src in enumerate(source)) and source[0][0].dtype == dt:
+                # the stacked outputs of another rolled scan (a gradient's residuals)
+                xs_flat.append(source[0][0])
+            elif all(id(v) in ctx.param_pos for v in lanes) and \
+                    len({ctx.param_pos[id(v)][0] for v in lanes}) == 1:
+                # parameters of the program: one gather from their table (built once,
+                # outside every loop), not a stack of n lanes at every site
+                table = ctx.param_table[ctx.param_pos[id(lanes[0])][0]]
+                xs_flat.append(table[np.asarray([ctx.param_pos[id(v)][1] for v in lanes])].astype(dt))
+            elif all(_lane_shape(v) == () for v in lanes):
+                xs_flat.append(jnp.stack([jnp.asarray(v, dt) for v in lanes]))
+            else:
+                xs_flat.append(jnp.stack([_broadcast(v, block, dt, ctx) for v in lanes]))
+        xs_meta.append((elem_shape, dt))
+
+    def unpack_xs(flat):
+        objs, k = [], 0
+        for shape, _ in xs_meta:
+            obj = _obj(shape)
+            for idx in np.ndindex(shape):
+                obj[idx] = flat[k]
+                k += 1
+            objs.append(obj)
+        return objs
+
+    def body(flat, x_flat):
+        ctx.scopes.append({})
+        try:
+            outs = _eval_closed(closed, [*consts, *unpack(flat), *unpack_xs(x_flat)], ctx)
+        finally:
+            ctx.scopes.pop()
+        ys = [_broadcast(_convert(x, dt, ctx), block, dt, ctx)
+              for obj, dt in zip(outs[nk:], y_dtypes) for x in obj.reshape(-1)]
+        return pack(outs[:nk]), ys
+
+    ctx.loop_depth += 1
+    try:
+        flat, ys_flat = lax.scan(body, pack(carry), xs_flat, length=length, reverse=reverse)
+    finally:
+        ctx.loop_depth -= 1
+    # stacked outputs: lane i of an element is ys[i] (remembered, so that a rolled scan
+    # that scans over them takes the array itself)
+    stacked, k = [], 0
+    for aval in y_avals:
+        obj = _obj(aval.shape)
+        for idx in np.ndindex(aval.shape[1:]):
+            arr = ys_flat[k]
+            k += 1
+            for i in range(length):
+                lane = arr[i]
+                ctx.slice_of[id(lane)] = (arr, i, lane)
+                obj[(i,) + idx] = lane
+        stacked.append(obj)
+    return unpack(flat) + stacked
+
+
+def _scan_counts(params):
+    """(consts, carries) of a scan equation: jax ≤ 0.10 has num_consts/num_carry, jax
+    0.11 the flat trees ft_in = (consts, carries, xs)."""
+    if "num_consts" in params:
+        return params["num_consts"], params["num_carry"]
+    consts, carry, _ = (len(list(t.vals)) for t in params["ft_in"].unpack())
+    return consts, carry
 
 
 def _prune_loop(cond_j, body_j, cconsts, bconsts, used):
@@ -1240,7 +1360,7 @@ class Uniforms:
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
                fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None,
-               bool_carries=False):
+               bool_carries=False, roll_scans=False):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -1264,6 +1384,8 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
         approximate functions (`_fast_math`).
       uniforms: a `Uniforms`, recording or replaying the values shared by all rays.
       bool_carries: loops carry boolean lanes as booleans (else as int32).
+      roll_scans: scans without stacked outputs stay loops (`_scan_rolled`: one copy
+        of the body), else they are unrolled.
 
     Returns: one object array of lanes per output of the program.
     """
@@ -1273,6 +1395,16 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     ctx.ptx = ptx
     ctx.uniforms = uniforms
     ctx.bool_carries = bool_carries
+    ctx.roll_scans = roll_scans
+    if roll_scans:  # a table of the 0-d parameter lanes, for rolled scans to gather from
+        by_dtype = collections.defaultdict(list)
+        for a in args:
+            for x in a.reshape(-1):
+                if not _is_const(x) and _lane_shape(x) == () and id(x) not in ctx.param_pos:
+                    dt = np.dtype(x.dtype)
+                    ctx.param_pos[id(x)] = (dt, len(by_dtype[dt]))
+                    by_dtype[dt].append(x)
+        ctx.param_table = {dt: jnp.stack(xs) for dt, xs in by_dtype.items()}
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \

@@ -22,8 +22,12 @@ selects, so the gradient flows to child j* alone (through the stack, to that chi
 own leaves), as through the loop's select-based min. Exact ties between children of
 different groups go to the first child in the list; a tie between a stacked child and
 a looped one can still be broken by an ulp of rounding (the two are compiled apart).
-The fused lane backends unroll the scan (`jaxrt.kernels.lanes`), so their programs
-still grow linearly with n."""
+The "fused" backend keeps the scan a loop over lanes (`lanes._scan_rolled`); Pallas
+unrolls it (`jaxrt.kernels.lanes`), so its programs still grow linearly with n.
+
+Material indices are data within a group: each primitive's static `material` becomes
+an int32 leaf (`material_as_data`), so spheres of sixteen materials are one group of
+sixteen, not sixteen groups of one."""
 
 import jax
 import jax.numpy as jnp
@@ -89,24 +93,26 @@ def stack_nodes(members):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *members)
 
 
-def stacked_eval(stacked, p):
-    """(d_{j*}, m_{j*}, j*) over the n stacked children: a `lax.scan` over the children
-    with the loop's select, (d, m, j) ← (d_k, m_k, k) where k = 0 or d_k < d, so the
-    program holds one copy of the child (see the module docstring)."""
+def stacked_eval(stacked, p, ids=None):
+    """(d_{j*}, m_{j*}, ids[j*]) over the n stacked children (ids: their indices in the
+    union, default 0..n−1): a `lax.scan` over the children with the loop's select,
+    (d, m, i) ← (d_k, m_k, ids[k]) where k = 0 or d_k < d, so the program holds one copy
+    of the child (see the module docstring)."""
     n = jax.tree_util.tree_leaves(stacked)[0].shape[0]
+    ids = jnp.arange(n, dtype=jnp.int32) if ids is None else jnp.asarray(ids, jnp.int32)
     first = jax.tree_util.tree_map(lambda x: x[0], stacked)
     d0, m0 = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
                                     jax.eval_shape(first.eval, p))
 
     def step(carry, xs):
         d, m, j = carry
-        child, k = xs
+        child, k, i = xs
         dc, mc = child.eval(p)
         take = (k == 0) | (dc < d)
-        return (jnp.where(take, dc, d), jnp.where(take, mc, m), jnp.where(take, k, j)), None
+        return (jnp.where(take, dc, d), jnp.where(take, mc, m), jnp.where(take, i, j)), None
 
     (d, m, j), _ = jax.lax.scan(step, (d0, m0, jnp.int32(0)),
-                                (stacked, jnp.arange(n, dtype=jnp.int32)))
+                                (stacked, jnp.arange(n, dtype=jnp.int32), ids))
     return d, m, j
 
 
@@ -133,8 +139,7 @@ def union_eval(children, p, threshold=None):
     best = None
     for ix, members in groups:
         if len(ix) >= threshold:
-            dc, mc, j = stacked_eval(stack_nodes(members), p)
-            candidates = [(dc, mc, jnp.asarray(ix, jnp.int32)[j])]
+            candidates = [stacked_eval(stack_nodes(members), p, ix)]
         else:
             candidates = [(*c.eval(p), jnp.int32(i)) for i, c in zip(ix, members)]
         for dc, mc, ic in candidates:
