@@ -154,9 +154,10 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
         return radiance + jnp.where(lit, colour(f) * colour(irradiance) * cos_i * visible, 0.0), None
 
     # One `lax.scan` over the stacked lights of each kind (point, directional): one
-    # shadow march per kind in the program, whatever the number of lights.
+    # shadow march per kind in the program, whatever the number of lights. Through the
+    # tape, so that the shadow marches' records leave the scan as its outputs.
     for _, lights in group_by_kind(list(scene.lights)):
-        radiance, _ = jax.lax.scan(step, radiance, stack(lights))
+        radiance, _ = tape.scan(step, radiance, stack(lights))
     return radiance
 
 
