@@ -143,6 +143,7 @@ def _fake_compile(monkeypatch, calls=None):
             rgb=jnp.full((h, w, 3), 0.5), depth=jnp.ones((h, w)))
 
     monkeypatch.setattr(render_module, "compile_render", fake)
+    monkeypatch.setenv("JAXRT_NO_CACHE", "1")  # the CLI then calls compile_render itself
 
 
 def _ball(tmp_path):
