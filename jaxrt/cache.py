@@ -56,3 +56,98 @@ def enable_compilation_cache(path=None, min_compile_seconds=MIN_COMPILE_SECONDS)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+# --------------------------------------------------------------------------- traced programs
+
+#: Subfolder of the cache folder that holds serialized render programs (`jax.export`).
+PROGRAMS = "programs"
+
+
+def program_key(scene, camera, settings):
+    """A key of everything a render program depends on but its float values: the
+    structure of scene and camera (their tree, with every static field, and each leaf's
+    shape and dtype), the settings, the jaxrt and JAX versions and the default backend."""
+    import hashlib
+
+    import jax
+
+    from . import __version__
+
+    leaves, treedef = jax.tree_util.tree_flatten((scene, camera))
+    shapes = [(getattr(x, "shape", None), str(getattr(x, "dtype", type(x)))) for x in leaves]
+    text = repr((str(treedef), shapes, repr(settings), __version__, jax.__version__,
+                 jax.default_backend()))
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def compile_render_cached(scene, camera, settings, folder=None):
+    """`render.compile_render`, with the traced program kept too: the first call exports
+    the render program (`jax.export`, after tracing and lowering it) to
+    `folder/programs/<program_key>.bin`; a later call for a scene of the same structure
+    reads it back and skips tracing, and with the compilation cache on, XLA's compile
+    too. Returns `(f(scene, camera) -> Image, reused)`.
+
+    Anything the export cannot hold (a Pallas kernel on some backends, a pytree it cannot
+    flatten) falls back to `render.compile_render` (reused False), so this is never worse
+    than compiling.
+    """
+    import importlib
+
+    import jax
+
+    render_module = importlib.import_module("jaxrt.render")  # the module, not jaxrt.render()
+    folder = Path(folder) if folder is not None else default_path()
+    path = folder / PROGRAMS / f"{program_key(scene, camera, settings)}.bin"
+    dtype = render_module._dtype(settings)
+    args = render_module._cast((scene, camera), dtype)
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    arrays = [i for i, x in enumerate(leaves) if hasattr(x, "shape")]
+    names = ("rgb",) + tuple(settings.aovs)
+
+    def rebuild(outputs):
+        return render_module.Image(**dict(zip(names, outputs)))
+
+    def call_with(exported):
+        call = jax.jit(exported.call)
+
+        def run(scene, camera):
+            flat = jax.tree_util.tree_leaves(render_module._cast((scene, camera), dtype))
+            return rebuild(call(*[jax.numpy.asarray(flat[i], leaves[i].dtype) for i in arrays]))
+
+        return run
+
+    try:
+        if path.is_file():
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+            run = call_with(exported)
+            run(scene, camera).rgb.block_until_ready()  # compiles (from XLA's cache)
+            return run, True
+    except Exception:  # a stale or foreign file: export anew
+        pass
+    try:
+        def flat_render(*array_leaves):
+            full = list(leaves)
+            for i, x in zip(arrays, array_leaves):
+                full[i] = x
+            scene_, camera_ = jax.tree_util.tree_unflatten(treedef, full)
+            image = render_module._render(scene_, camera_, settings)
+            return tuple(getattr(image, k) for k in names)
+
+        exported = jax.export.export(jax.jit(flat_render))(
+            *[jax.ShapeDtypeStruct(leaves[i].shape, leaves[i].dtype) for i in arrays])
+        run = call_with(exported)
+        run(scene, camera).rgb.block_until_ready()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
+            tmp.write_bytes(exported.serialize())
+            tmp.replace(path)
+        except OSError:
+            pass
+        return run, False
+    except Exception as e:  # noqa: BLE001 (any failure: compile as usual)
+        if os.environ.get("JAXRT_DEBUG"):
+            raise
+        del e
+        return render_module.compile_render(scene, camera, settings), False

@@ -143,6 +143,7 @@ def _fake_compile(monkeypatch, calls=None):
             rgb=jnp.full((h, w, 3), 0.5), depth=jnp.ones((h, w)))
 
     monkeypatch.setattr(render_module, "compile_render", fake)
+    monkeypatch.setenv("JAXRT_NO_CACHE", "1")  # the CLI then calls compile_render itself
 
 
 def _ball(tmp_path):
@@ -264,3 +265,28 @@ def test_success_replaces_old_outputs_and_leaves_no_temporaries(tmp_path, capsys
     assert main(["render", str(_ball(tmp_path)), "-o", str(out)]) == 0
     assert _no_outputs(tmp_path) == ["ball.exr", "ball.png"]
     assert io.read_exr(out.with_suffix(".exr"))["rgb"].shape == (8, 12, 3)
+
+
+def test_second_render_reuses_the_cached_program(tmp_path, capsys, monkeypatch):
+    """With the cache on, the second render of an unchanged structure reads the exported
+    program back (no tracing) and gives the same image; other values, same structure."""
+    import jax
+
+    import jaxrt.cache as cache
+
+    monkeypatch.delenv("JAXRT_NO_CACHE", raising=False)
+    folder = tmp_path / "cache"
+    config = _ball(tmp_path)
+    scene, camera, settings = __import__("jaxrt").config.load(config)
+    settings = settings.replace(backend="jax")
+    first, reused = cache.compile_render_cached(scene, camera, settings, folder)
+    assert not reused and len(list((folder / cache.PROGRAMS).iterdir())) == 1
+    second, reused = cache.compile_render_cached(scene, camera, settings, folder)
+    assert reused
+    np.testing.assert_array_equal(np.asarray(first(scene, camera).rgb), np.asarray(second(scene, camera).rgb))
+    import equinox as eqx
+
+    bigger = eqx.tree_at(lambda s: s.surface.radius, scene, scene.surface.radius * 1.2)
+    reference = __import__("jaxrt").render(bigger, camera, settings)
+    np.testing.assert_allclose(np.asarray(second(bigger, camera).rgb), np.asarray(reference.rgb), atol=1e-6)
+

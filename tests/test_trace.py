@@ -243,7 +243,7 @@ def test_rays_that_exhaust_their_budget_say_so_with_finite_output():
     settings = jr.RenderSettings(max_steps=4)
     h = run(sdf.Sphere(1.0), o, d, settings, jnp.float32)
     assert h.exhausted.all() and not h.hit.any()
-    assert np.all(h.steps == 4)
+    assert np.all(h.steps == 4 + 1)  # max_steps + 1 marks a ray that ran out
     assert np.all(h.t == settings.max_distance)
     for leaf in jax.tree_util.tree_leaves(h):
         assert np.all(np.isfinite(np.asarray(leaf, float)))
