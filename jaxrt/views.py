@@ -14,16 +14,20 @@ the scene and the cameras, like `render`.
     images = jr.render_views(scene, cameras, settings)        # images.rgb: [8, 48, 48, 3]
     loss = jr.fit.l2_loss(images.rgb, targets)
 
-Several devices: `devices=D` (or a list of devices) places the view axis on a one-axis
-mesh ("views") with `jax.sharding.NamedSharding`, so that XLA partitions the batch of
-views over the devices (V must be a multiple of D); the scene is replicated.
+Several devices: `devices=D` (or a list of devices) cuts the view axis into D equal
+blocks (V must be a multiple of D) on a one-axis mesh ("views") and renders each block on
+its own device with `jax.shard_map`, the scene replicated: the devices never talk while
+rendering, and the gradient of a loss summed over views is reduced by JAX (the transpose
+of the replication is a sum over devices). `shard_map` rather than a sharding constraint:
+XLA cannot partition a Pallas kernel (a custom call), it would run every view on every
+device.
 """
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, PartitionSpec as P
 
 from .camera import PerspectiveCamera, _Camera
 from .render import render
@@ -121,10 +125,16 @@ def _view_mesh(devices, n):
 
 @eqx.filter_jit
 def _render_views(scene, cameras, settings, mesh):
-    if mesh is not None:
-        on_views = NamedSharding(mesh, P(AXIS))
-        cameras = jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, on_views), cameras)
-    images = jax.vmap(lambda camera: render(scene, camera, settings))(cameras)
-    if mesh is not None:
-        images = jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, on_views), images)
-    return images
+    dyn, static = eqx.partition((scene, cameras), eqx.is_array)
+
+    def block(dyn_):
+        scene_, cameras_ = eqx.combine(dyn_, static)
+        return jax.vmap(lambda camera: render(scene_, camera, settings))(cameras_)
+
+    if mesh is None:
+        return block(dyn)
+    scene_dyn, camera_dyn = dyn
+    specs = (jax.tree.map(lambda _: P(), scene_dyn), jax.tree.map(lambda _: P(AXIS), camera_dyn))
+    out_specs = jax.tree.map(lambda _: P(AXIS), jax.eval_shape(block, dyn))
+    return jax.shard_map(block, mesh=mesh, in_specs=(specs,), out_specs=out_specs,
+                         check_vma=False)(dyn)

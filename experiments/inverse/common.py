@@ -162,6 +162,12 @@ def perturb(truth, floors, fraction, seed):
     return out
 
 
+def _devices(cfg):
+    """The devices the views are sharded over: `[run] devices` (0, the default: every
+    local device; `jaxrt.render_views`)."""
+    return cfg["run"].get("devices", 0)
+
+
 def settings(cfg, which):
     return jr.RenderSettings(**cfg[which])
 
@@ -186,7 +192,7 @@ def run(study, cfg, out, fresh=False):
     target_settings, fit_settings = settings(cfg, "target_settings"), settings(cfg, "fit_settings")
     t0 = time.perf_counter()
     scene, cameras = study.build(study.truth)
-    targets = jr.render_views(scene, cameras, target_settings).rgb
+    targets = jr.render_views(scene, cameras, target_settings, devices=_devices(cfg)).rgb
     targets.block_until_ready()
     t_target = time.perf_counter() - t0
     start = perturb(study.truth, study.floors, f["perturbation"], cfg.get("seed", 0))
@@ -196,9 +202,9 @@ def run(study, cfg, out, fresh=False):
 
     def loss(p, _):
         scene, cameras = study.build(p)
-        image = jr.render_views(scene, cameras, fit_settings).rgb
+        image = jr.render_views(scene, cameras, fit_settings, devices=_devices(cfg)).rgb
         if debias:  # values of the target's estimator, gradients of the fit's
-            truth_like = jr.render_views(scene, cameras, target_settings).rgb
+            truth_like = jr.render_views(scene, cameras, target_settings, devices=_devices(cfg)).rgb
             image = image + jax.lax.stop_gradient(truth_like - image)
         return jr.fit.l2_loss(image, targets, weights)
 
@@ -241,9 +247,9 @@ def run(study, cfg, out, fresh=False):
     met = {k: bool(metrics[k] <= v) for k, v in cfg["targets"].items() if k in metrics}
 
     # images: start and fit with the target settings (what a viewer compares)
-    start_rgb = jr.render_views(*study.build(start), target_settings).rgb
+    start_rgb = jr.render_views(*study.build(start), target_settings, devices=_devices(cfg)).rgb
     fit_scene, fit_cameras = study.build(result.params)
-    fit_images = jr.render_views(fit_scene, fit_cameras, target_settings)
+    fit_images = jr.render_views(fit_scene, fit_cameras, target_settings, devices=_devices(cfg))
     one = jr.views.view(fit_cameras, 0)
     jr.io.write_exr(out / "fitted.exr", jax.tree.map(lambda x: x[0], fit_images))
     jr.io.write_png(out / "fitted.png", fit_images.rgb[0])

@@ -241,7 +241,7 @@ def fit(cfg, log=print):
             raise ValueError(f"stage of {n} vertices: (n − 1) must divide {finest - 1}, the finest stage's cells")
 
     t = time.perf_counter()
-    targets = jr.render_views(make_scene(cfg, truth), cams, settings(cfg, True)).rgb
+    targets = jr.render_views(make_scene(cfg, truth), cams, settings(cfg, True), devices=cfg.get('devices', 0)).rgb
     targets.block_until_ready()
     log(f"targets: {cfg['views']} views of {cfg['width']}x{cfg['height']} at {cfg['target_spp']} spp "
         f"in {time.perf_counter() - t:.1f} s (with compilation)")
@@ -256,10 +256,12 @@ def fit(cfg, log=print):
     def loss_grad(fine):
         point = None
         if cfg["unbiased_spp"] > 0:  # no gradient: a constant of image_loss
-            point = jr.render_views(make_scene(cfg, grid(cfg, fine)), cams, point_settings).rgb
+            point = jr.render_views(make_scene(cfg, grid(cfg, fine)), cams, point_settings,
+                                       devices=cfg.get('devices', 0)).rgb
 
         def image_loss(v):
-            image = jr.render_views(make_scene(cfg, grid(cfg, v)), cams, fit_settings).rgb
+            image = jr.render_views(make_scene(cfg, grid(cfg, v)), cams, fit_settings,
+                                   devices=cfg.get('devices', 0)).rgb
             if point is not None:  # value: point-sampled; gradient: silhouette-aware
                 image = image + jax.lax.stop_gradient(point - image)
             return jr.fit.l2_loss(image, targets)
@@ -360,10 +362,10 @@ def write_outputs(cfg, results, parts, out, log=print):
     np.save(out / "fitted_grid.npy", np.asarray(fitted.values, np.float32))
     write_scene(cfg, parts, out)
     scene, camera, render_settings = jr.config.load(out / "fitted.toml")
-    fit_images = jr.render_views(scene, parts["cameras"], render_settings).rgb
+    fit_images = jr.render_views(scene, parts["cameras"], render_settings, devices=cfg.get('devices', 0)).rgb
     start = grid(cfg, parts["start"])
     start = sdf.upsample(start, (fitted.values.shape[0] - 1) // (start.values.shape[0] - 1))
-    start_images = jr.render_views(make_scene(cfg, start), parts["cameras"], render_settings).rgb
+    start_images = jr.render_views(make_scene(cfg, start), parts["cameras"], render_settings, devices=cfg.get('devices', 0)).rgb
     image_grid(cfg, parts["targets"], start_images, fit_images, out / "images.png")
     jr.io.write_exr(out / "render.exr", np.asarray(fit_images[0]))
     log(f"wrote {out}/: results.json, results.md, curves.png, images.png, fitted_grid.npy, "
