@@ -198,8 +198,9 @@ def scene_with(material, lights=1):
 def test_diffuse_scene_traces_no_secondary_rays_whatever_max_depth():
     scene = scene_with(jr.bsdf.Lambert(0.8), lights=2)
     for depth in (0, 1, 5):
-        # One camera ray and one shadow ray per light: max_depth is ignored.
-        assert one_ray_program(scene, jr.RenderSettings(max_depth=depth)) == [(1,)] * 3
+        # One camera ray and one shadow march for the two point lights (a scan over the
+        # lights of one kind, `direct_lighting`): max_depth is ignored.
+        assert one_ray_program(scene, jr.RenderSettings(max_depth=depth)) == [(1,)] * 2
 
 
 def test_mirror_scene_traces_one_ray_per_level():
