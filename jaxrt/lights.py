@@ -60,8 +60,11 @@ class DirectionalLight(eqx.Module):
 def shadow_ray(sdf, origin, wi, distance, settings):
     """Visibility in [0, 1] of a light at `distance` along `wi` from `origin`.
 
-    "hard": 0 if a sphere-traced ray hits anything before the light or runs out of
-    steps before reaching it, else 1 (no gradient: a step).
+    "hard": 0 if a sphere-traced ray hits anything before the light, or runs out of
+    steps before reaching it while still converging on a surface (its distance falling:
+    it passes close by an occluder), else 1 (no gradient: a step). A ray that runs out
+    while receding (leaving the surface it started on at a grazing angle, say) is
+    visible: nothing was in its way.
     "soft": Quilez's penumbra estimate min over the march of smoothstep(k · f(t) / t),
     with k = settings.penumbra (0 once the ray touches a surface), evaluated at the
     march's minimiser (`penumbra`): differentiable in the occluder, the shaded point
@@ -79,9 +82,9 @@ def shadow_ray(sdf, origin, wi, distance, settings):
     if settings.shadows == "hard":
         options = SphereTracing(max_steps=settings.shadow_steps, hit_epsilon=settings.hit_epsilon,
                                 max_distance=settings.max_distance, newton_steps=0)
-        # A shadow ray that ran out of steps before the light has not shown it visible.
-        found = sphere_trace(sdf, origin, wi, options, t_max=t_max, fields=("exhausted",))
-        return jnp.where(found.hit | found.exhausted, 0.0, 1.0).astype(origin.dtype)
+        # A shadow ray that ran out of steps still converging on a surface is blocked.
+        found = sphere_trace(sdf, origin, wi, options, t_max=t_max, fields=("converging",))
+        return jnp.where(found.hit | found.converging, 0.0, 1.0).astype(origin.dtype)
     options = SoftShadow.of(settings)
     found = tape.march(lambda *a: soft_shadow_march(*a, options), stop_gradient(sdf),
                        stop_gradient(origin), stop_gradient(wi), stop_gradient(t_max))

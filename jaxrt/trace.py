@@ -67,6 +67,9 @@ class Hit(eqx.Module):
     closest_bracket
                [2] the marched samples before and after closest_t: the minimum of
                f / r along the ray near the near miss lies between them.
+    converging an exhausted ray whose distance was still falling when the budget ran out
+               (and whose secant finish found no surface): it may be about to hit
+               something, where an exhausted ray that was receding is not.
     """
 
     t: jnp.ndarray
@@ -77,10 +80,11 @@ class Hit(eqx.Module):
     closest_t: jnp.ndarray | None
     closest_d: jnp.ndarray | None
     closest_bracket: jnp.ndarray | None = None
+    converging: jnp.ndarray | None = None
 
 
 HIT_FIELDS = ("t", "hit", "steps", "inside", "exhausted", "closest_t", "closest_d",
-              "closest_bracket")
+              "closest_bracket", "converging")
 
 
 def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None, fields=None):

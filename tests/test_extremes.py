@@ -74,8 +74,9 @@ def test_absolute_epsilon_in_large_units(dtype):
 
 
 def test_exhausted_rays_are_marked_and_shadow_rays_out_of_budget_are_not_visible():
-    """A ray that runs out of steps reports steps = max_steps + 1; a hard shadow ray that
-    runs out before its light leaves the point unlit (it was lit: 'visible' by default)."""
+    """A ray that runs out of steps reports steps = max_steps + 1; a shadow ray that runs
+    out before its light while converging on a surface leaves the point unlit (it was
+    lit: 'visible' by default), one that runs out receding from every surface lights it."""
     scene = jr.Scene(surface=jr.sdf.Translate(jr.sdf.Sphere(radius=1.0), offset=(0.0, 0.0, 10.0)),
                      materials=[jr.bsdf.Lambert()])
     settings = jr.RenderSettings(max_steps=2, newton_steps=0)
@@ -87,10 +88,14 @@ def test_exhausted_rays_are_marked_and_shadow_rays_out_of_budget_are_not_visible
     from jaxrt.lights import shadow_ray
 
     sdf = _cast(scene, jnp.float32).surface
-    for shadows in ("hard", "soft"):
-        s = jr.RenderSettings(shadows=shadows, shadow_steps=2)
+    # Out of budget while still converging on the sphere (one hard step lands beside it,
+    # the soft march's steps are capped at 1/16 of the ray): blocked. Out of budget once
+    # past the closest approach (two hard steps: the distance grows again): visible.
+    for shadows, steps, want in (("hard", 1, 0.0), ("soft", 2, 0.0), ("hard", 2, 1.0)):
+        s = jr.RenderSettings(shadows=shadows, shadow_steps=steps)
         v = shadow_ray(sdf, o, d, jnp.float32(50.0), s)
-        assert float(v) == 0.0, shadows
+        assert float(v) == want, (shadows, steps)
+    for shadows in ("hard", "soft"):
         far = jr.RenderSettings(shadows=shadows, shadow_steps=256)
         assert float(shadow_ray(sdf, o, d, jnp.float32(50.0), far)) > 0.5, shadows  # it clears
 

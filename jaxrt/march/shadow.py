@@ -109,10 +109,13 @@ def march(sdf, origin, wi, t_max, options):
     zero = jnp.zeros((), dtype)
     t0 = jnp.maximum(jnp.asarray(eps, dtype), rounding_floor(origin))
     init = (t0, jnp.ones((), dtype), jnp.zeros((), jnp.int32), t0, zero, t0, t0)
-    t_end, vis, _, _, t_best, lo, hi = jax.lax.while_loop(cond, body, init)
-    # Out of budget before the light (and not already dark): not shown visible, blocked.
+    t_end, vis, _, t_last, t_best, lo, hi = jax.lax.while_loop(cond, body, init)
+    # Out of budget before the light (and not already dark) while still converging on a
+    # surface (the distance falling over the last step: it passes close by an
+    # occluder): blocked. One that was receding keeps the minimum it found.
     ran_out = (t_end < t_max) & (vis > MIN_VISIBILITY)
-    blocked = (vis <= 0.0) | ran_out
+    falling = sdf(origin + t_end * wi) * sign < sdf(origin + t_last * wi) * sign
+    blocked = (vis <= 0.0) | (ran_out & falling)
     if options.refine_steps:
         # The sampled minimum refined by golden section on k·f/t in [lo, hi] (the samples
         # around it): the gradient (`jaxrt.lights.penumbra`) is then that of the minimum

@@ -198,4 +198,5 @@ def march(sdf, origin, direction, settings, cone, t_max):
         steps=s["steps"] + exhausted.astype(jnp.int32),
         inside=start < 0.0, exhausted=exhausted, closest_t=best_t,
         closest_d=best_r * lipschitz * sign, closest_bracket=jnp.stack([lo, hi]),
+        converging=exhausted & approaching,
     )
