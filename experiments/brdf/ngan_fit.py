@@ -291,9 +291,10 @@ def render_spheres(materials, r):
     light = np.asarray(r["light_position"], float)
     scene = jr.Scene(surface, materials, lights=[jr.PointLight(light, r["light_intensity"])],
                      background=r["background"])
-    # batch_size=None: one vmap over the (few) rays compiles ~3x faster than tiles.
+    # backend "jax", batch_size=None: one vmap over the (few) rays compiles ~3x faster
+    # than tiles, and far faster than a lane kernel of every BRDF model at once.
     settings = jr.RenderSettings(max_steps=64, shadows="none", batch_size=None,
-                                 max_distance=2.0 * d)
+                                 max_distance=2.0 * d, backend="jax")
     images = []
     for c in centres:
         lit = eqx.tree_at(lambda s: s.lights[0].position, scene, jnp.asarray(c + light))
