@@ -50,7 +50,7 @@ from .kinds import group_by_kind, lookup, stack
 from .lights import shadow_ray
 from .march import SphereTracing, tape
 from .trace import hit_epsilon, intersect_plane, sphere_trace, surface_normal
-from .vecmath import dot, safe_div, to_local
+from .vecmath import dot, safe_div, safe_norm, to_local
 
 
 def select(values, index):
@@ -452,13 +452,17 @@ def _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p, n_out,
 
 
 def _offset_absorption(sigma, origin, p, direction):
-    """exp(−σ (origin − p)·d): Beer–Lambert over the part of the segment from the surface
-    point p to a child's offset origin, which the child's own t does not include
-    (|p_hit − p| = t + (origin − p)·d to first order in the offset). Without it, a ray
-    through a slab of thickness L is attenuated over L − 2·offset. No gradient: the
-    offset is a precision device, not geometry."""
-    length = jax.lax.stop_gradient(dot(origin - p, direction))
-    return jnp.exp(-sigma * jnp.maximum(length, 0.0))
+    """exp(−σ ℓ): Beer–Lambert over the part of the path that a child's own t does not
+    include because it starts at an offset origin. The origin is moved off the surface
+    by δ = origin − p (along the normal), so the path from the surface to the child's
+    starting plane along d is ℓ = |δ|² / (δ·d) = offset / cos θ (exact for a flat
+    surface; the cosine floored at 1/4, beyond which the offset's share of any path is
+    negligible). Without it, a slab of thickness L seen at θ is attenuated over
+    (L − offset) / cos θ. No gradient: the offset is a precision device, not geometry."""
+    delta = jax.lax.stop_gradient(origin - p)
+    along = jnp.maximum(dot(delta, jax.lax.stop_gradient(direction)), 0.0)
+    length = safe_div(dot(delta, delta), jnp.maximum(along, 0.25 * safe_norm(delta)))
+    return jnp.exp(-sigma * length)
 
 
 def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):

@@ -187,9 +187,9 @@ def test_beer_lambert_through_index_matched_slab():
     def rgb(sigma):
         return _render_ray(slab(Dielectric(1.0, absorption=sigma)), o, d, depth=2)
 
-    # The ray inside starts `offset` below the top face (spawn_offset).
-    offset = float(integrator.spawn_offset(jnp.zeros(3), SETTINGS))
-    length = (1.0 - offset) / np.cos(theta)
+    # The whole path through the slab: the ray inside starts `offset` below the top face
+    # (spawn_offset), and the part it skips, offset / cos θ, is absorbed at the spawn.
+    length = 1.0 / np.cos(theta)
     background = np.array([0.25, 0.5, 1.0])
     expected = background * np.exp(-np.asarray(sigma) * length)
     # Channel i depends on σ_i only, so one JVP along (1, 1, 1) gives the diagonal of
