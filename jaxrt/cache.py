@@ -108,8 +108,11 @@ def compile_render_cached(scene, camera, settings, folder=None):
     def rebuild(outputs):
         return render_module.Image(**dict(zip(names, outputs)))
 
+    specs = [jax.ShapeDtypeStruct(leaves[i].shape, leaves[i].dtype) for i in arrays]
+
     def call_with(exported):
-        call = jax.jit(exported.call)
+        """The exported program compiled (from XLA's cache when it is on), not run."""
+        call = jax.jit(exported.call).lower(*specs).compile()
 
         def run(scene, camera):
             flat = jax.tree_util.tree_leaves(render_module._cast((scene, camera), dtype))
@@ -120,9 +123,7 @@ def compile_render_cached(scene, camera, settings, folder=None):
     try:
         if path.is_file():
             exported = jax.export.deserialize(bytearray(path.read_bytes()))
-            run = call_with(exported)
-            run(scene, camera).rgb.block_until_ready()  # compiles (from XLA's cache)
-            return run, True
+            return call_with(exported), True
     except Exception:  # a stale or foreign file: export anew
         pass
     try:
@@ -134,10 +135,8 @@ def compile_render_cached(scene, camera, settings, folder=None):
             image = render_module._render(scene_, camera_, settings)
             return tuple(getattr(image, k) for k in names)
 
-        exported = jax.export.export(jax.jit(flat_render))(
-            *[jax.ShapeDtypeStruct(leaves[i].shape, leaves[i].dtype) for i in arrays])
+        exported = jax.export.export(jax.jit(flat_render))(*specs)
         run = call_with(exported)
-        run(scene, camera).rgb.block_until_ready()
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp")
