@@ -54,7 +54,7 @@ def _node(obj, registry, comments):
         if not hasattr(obj, field):
             continue
         v = getattr(obj, field)
-        if v is None:
+        if v is None or (name == "stack_threshold" and v == p.default):
             continue
         if isinstance(obj, Dielectric) and name == "eta" and isinstance(v, eqx.Module):
             model = ", ".join(f"{f.name}={float(getattr(v, f.name))!r}" for f in dataclasses.fields(v))

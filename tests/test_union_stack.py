@@ -195,13 +195,14 @@ def test_parameter_change_does_not_retrace():
     np.testing.assert_allclose([d0, d1], [-0.5, -0.25], rtol=1e-14)
 
 
-def many_spheres_scene():
+def many_spheres_scene(stack_threshold=stack.STACK_THRESHOLD):
     rng = np.random.default_rng(5)
     children = [S.Translate(S.Sphere(radius=0.2 + 0.15 * rng.uniform(), material=0),
                             offset=(rng.uniform(-1.2, 1.2), 0.4, rng.uniform(-1.0, 0.2)))
                 for i in range(8)]
     children += [S.Translate(S.Sphere(radius=0.25, material=1), offset=(x, 0.3, 0.6)) for x in (-0.6, 0.6)]
-    surface = S.Union(*children, S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=2))
+    surface = S.Union(*children, S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=2),
+                      stack_threshold=stack_threshold)
     scene = jr.Scene(surface=surface,
                      materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2)),
                                 jr.bsdf.Lambert(albedo=(0.2, 0.5, 0.8)),
@@ -214,15 +215,15 @@ def many_spheres_scene():
 
 
 @pytest.mark.parametrize("backend", ["fused", pytest.param("pallas", marks=pytest.mark.slow)])
-def test_stacked_union_renders_the_same_through_lanes(backend, monkeypatch):
+def test_stacked_union_renders_the_same_through_lanes(backend):
     """8 spheres (stacked, scanned) + 2 spheres and a plane (a loop): the lane backends
     (which unroll the scan; Pallas in interpret mode on CPUs) give the image of the
     loop union."""
     scene, camera = many_spheres_scene()
     settings = jr.RenderSettings(batch_size=16)
     got = jr.render(scene, camera, settings.replace(backend=backend))
-    monkeypatch.setattr(stack, "STACK_THRESHOLD", LOOP)
-    want = jr.render(scene, camera, settings)
+    loop_scene, _ = many_spheres_scene(stack_threshold=LOOP)
+    want = jr.render(loop_scene, camera, settings)
     np.testing.assert_array_equal(np.asarray(got.coverage), np.asarray(want.coverage))
     np.testing.assert_allclose(np.asarray(got.rgb), np.asarray(want.rgb), atol=1e-4)
     np.testing.assert_allclose(np.asarray(got.depth), np.asarray(want.depth), rtol=1e-5, atol=1e-5)
