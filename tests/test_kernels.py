@@ -383,3 +383,10 @@ def test_kernel_options_are_validated_like_other_settings():
     assert jr.config.check_settings({"kernel": {"unroll": 2}}).kernel.unroll == 2
     with pytest.raises(jr.config.ConfigError, match=r"settings.kernel.unroll = 0, expected"):
         jr.config.check_settings({"kernel": {"unroll": 0}}, "--set")
+    text = jr.config_writer.dumps(jr.Scene(surface=jr.sdf.Sphere(radius=1.0, material=0),
+                                           materials=[jr.bsdf.Lambert(albedo=(0.5, 0.5, 0.5))],
+                                           lights=[]),
+                                  jr.PerspectiveCamera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0),
+                                                       up=(0.0, 1.0, 0.0), fov=45.0, width=4,
+                                                       height=4), settings=s)
+    assert jr.config.loads(text)[2].kernel == s.kernel, text
