@@ -32,7 +32,7 @@ class KernelOptions:
                          against 0.300 ms for 1 (same run): the test is a
                          14-instruction warp reduction, against about 50 for a march step.
       materialize        "fused" on XLA: materialise function results outside loops
-                         (`lanes._barrier`). On a 2-core Sapphire Rapids with jax 0.10.2
+                         (`lanes.control._barrier`). On a 2-core Sapphire Rapids with jax 0.10.2
                          this made "fused" 3× faster on the Warp scene.
       pallas_fma         fuse a product used once by an add or sub into a fused
                          multiply-add (PTX `fma.rn.f32`: one rounding instead of two;

@@ -282,10 +282,10 @@ def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly():
 
 
 def test_store_is_exact_and_a_fusion_boundary_on_cpu():
-    """lanes._materialise (how "fused" materialises shared lanes on XLA:CPU) returns its input
+    """lanes.control._materialise (how "fused" materialises shared lanes on XLA:CPU) returns its input
     bit for bit, and XLA computes a stored expression once: without the store, the
     shared chain is fused into (so recomputed in) each of 8 consumer outputs."""
-    from jaxrt.kernels.lanes import _materialise as _store
+    from jaxrt.kernels.lanes.control import _materialise as _store
 
     x = np.array([0.0, -0.0, 1.5, -np.inf, np.inf, np.nan, 1e-45, -3e38], np.float32)
     got = np.asarray(jax.jit(_store)(x))

@@ -39,7 +39,7 @@ __all__ = ["map_samples", "resolve_backend", "Unsupported", "pallas_block", "til
 
 #: Elementwise primitives that Pallas' Triton lowering lacks (jax 0.10/0.11). erfc (a
 #: Beckmann distribution's Smith term) is computed from a Chebyshev fit instead
-#: (`lanes._erfc`, fractional error < 1.2e-7); a program using the others is Unsupported
+#: (`lanes.gpu._erfc`, fractional error < 1.2e-7); a program using the others is Unsupported
 #: for "pallas", and "auto" renders it with the "jax" program.
 TRITON_UNSUPPORTED = ("erf", "erfc", "lgamma", "digamma", "bessel_i0e", "bessel_i1e")
 
@@ -151,7 +151,7 @@ def _from_tiles(x, grid):
 def resolve_backend(backend):
     """"auto" → "pallas" on a GPU, "fused" elsewhere; others unchanged. (On 2 CPU
     cores the fused lanes rendered the Warp scene 1.4–2× faster than vmap; they were
-    slower while XLA:CPU recomputed shared lanes, see `lanes._materialise`.)"""
+    slower while XLA:CPU recomputed shared lanes, see `lanes.control._materialise`.)"""
     if backend == "auto":
         return "pallas" if jax.default_backend() == "gpu" else "fused"
     return backend

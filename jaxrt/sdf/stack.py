@@ -22,7 +22,7 @@ selects, so the gradient flows to child j* alone (through the stack, to that chi
 own leaves), as through the loop's select-based min. Exact ties between children of
 different groups go to the first child in the list; a tie between a stacked child and
 a looped one can still be broken by an ulp of rounding (the two are compiled apart).
-The "fused" backend keeps the scan a loop over lanes (`lanes._scan_rolled`); Pallas
+The "fused" backend keeps the scan a loop over lanes (`lanes.control._scan_rolled`); Pallas
 unrolls it (`jaxrt.kernels.lanes`), so its programs still grow linearly with n.
 
 Material indices are data within a group: each primitive's static `material` becomes
