@@ -337,7 +337,7 @@ def test_batched_while_steps_only_its_active_elements():
     np.testing.assert_array_equal(out["t"], want["t"])
 
 
-def test_kernel_options_are_part_of_the_cache_key(small_scene):
+def test_kernel_options_are_part_of_the_cache_key():
     """`RenderSettings.kernel` is static: after a render, changing an option changes the
     compiled program (no cache clearing). "auto" with a lane-operation limit of 1 falls
     back to "jax" (a warning) although the same scene was just rendered fused; and the
@@ -345,8 +345,12 @@ def test_kernel_options_are_part_of_the_cache_key(small_scene):
     import equinox as eqx
     from jaxrt.render import _cast, _render
 
-    scene, camera, _ = small_scene
-    base = jr.RenderSettings(backend="auto", batch_size=64, aovs=())
+    scene = jr.Scene(surface=jr.sdf.Sphere(radius=1.0, material=0),
+                     materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2))],
+                     lights=[jr.DirectionalLight(direction=(0.3, 1.0, 0.5), irradiance=(1.0, 1.0, 1.0))])
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
+                                  fov=45.0, width=6, height=4)
+    base = jr.RenderSettings(backend="auto", batch_size=64, aovs=(), shadows="none", max_depth=0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         first = jr.render(scene, camera, base)

@@ -54,7 +54,7 @@ def lanes_and_vmap(fn, params, a, b, **options):
         outs = eval_lanes(closed, [lanes_of(params), _lane(a), _lane(b)], N, **options)
         return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
 
-    want = jax.tree_util.tree_leaves(jax.vmap(fn, in_axes=(None, 0, 0))(params, a, b))
+    want = jax.tree_util.tree_leaves(jax.vmap(fn, in_axes=(None, 0, 0))(jnp.asarray(params), a, b))
     return closed, [np.asarray(x) for x in lanes(params, a, b)], [np.asarray(x) for x in want]
 
 
@@ -85,9 +85,9 @@ RULES = [
     ("round_away", "round", lambda p, a, b: lax.round(a, lax.RoundingMethod.AWAY_FROM_ZERO)),
     ("round_even", "round", lambda p, a, b: lax.round(a, lax.RoundingMethod.TO_NEAREST_EVEN)),
     ("gather_const", "gather", lambda p, a, b: p[jnp.array([3, 1, 1])] * a),
-    ("gather_per_ray", "gather", lambda p, a, b: p[:4][index(a, 4)] + b),
+    ("gather_per_ray", "gather", lambda p, a, b: p[:4][jnp.stack([index(a, 4), 1])] + b),
     ("gather_two_per_ray", "gather",
-     lambda p, a, b: p[:9].reshape(3, 3)[index(a, 3), index(b, 3)]),
+     lambda p, a, b: p[:9].reshape(3, 3)[jnp.stack([index(a, 3), 2]), jnp.stack([1, index(b, 3)])]),
     ("dynamic_slice", "dynamic_slice", lambda p, a, b: lax.dynamic_slice(p[:5] * b, (index(a, 4),), (2,))),
     ("scatter", "scatter", lambda p, a, b: jnp.zeros(4).at[index(a, 4)].set(b)),
     ("scatter_add", "scatter-add", lambda p, a, b: jnp.zeros(4).at[2].add(b).at[index(a, 4)].add(a)),

@@ -71,7 +71,8 @@ def _pad(eqn, ins, ctx):
     value = value[()]
     cfg = eqn.params["padding_config"]
     out = _obj(eqn.outvars[0].aval.shape)
-    out[...] = value
+    for idx in np.ndindex(out.shape):  # one by one: numpy would convert a traced value
+        out[idx] = value
     # positions of the operand's elements in the output
     for idx in np.ndindex(x.shape):
         pos = []
