@@ -385,6 +385,11 @@ def test_kernel_options_are_validated_like_other_settings():
     s = jr.RenderSettings(kernel={"unroll": 3, "pallas_fma": False})
     assert s.kernel == jr.KernelOptions(unroll=3, pallas_fma=False)
     assert jr.config.check_settings({"kernel": {"unroll": 2}}).kernel.unroll == 2
+    from jaxrt.cli import parse_overrides
+
+    over = parse_overrides(["kernel={unroll=2, pallas_fma=false}", "split=rows"])
+    got = jr.config.check_settings(over, "--set")
+    assert got.kernel == jr.KernelOptions(unroll=2, pallas_fma=False) and got.split == "rows"
     with pytest.raises(jr.config.ConfigError, match=r"settings.kernel.unroll = 0, expected"):
         jr.config.check_settings({"kernel": {"unroll": 0}}, "--set")
     text = jr.config_writer.dumps(jr.Scene(surface=jr.sdf.Sphere(radius=1.0, material=0),

@@ -228,3 +228,32 @@ def test_stacked_union_renders_the_same_through_lanes(backend):
     np.testing.assert_allclose(np.asarray(got.rgb), np.asarray(want.rgb), atol=1e-4)
     np.testing.assert_allclose(np.asarray(got.depth), np.asarray(want.depth), rtol=1e-5, atol=1e-5)
     assert len(np.unique(np.asarray(want.albedo).reshape(-1, 3), axis=0)) >= 3  # all materials seen
+
+
+def test_stack_threshold_is_a_static_field_of_the_union():
+    """`Union(stack_threshold=...)` is part of the scene's structure (so of the jit cache
+    key): the same children looped or stacked are different programs, with the same
+    distances; it is validated and read from TOML."""
+    children = [S.Translate(S.Sphere(radius=0.3, material=0), offset=(1.0 * i, 0.0, 0.0))
+                for i in range(8)]
+    stacked, looped = S.Union(*children), S.Union(*children, stack_threshold=LOOP)
+    assert jax.tree_util.tree_structure(stacked) != jax.tree_util.tree_structure(looped)
+    p = jnp.array([0.2, 0.1, -0.4])
+    size = [len(jax.make_jaxpr(u.eval)(p).jaxpr.eqns) for u in (stacked, looped)]
+    assert size[0] < size[1], size
+    np.testing.assert_allclose(stacked.eval(p)[0], looped.eval(p)[0], rtol=1e-15)
+    with pytest.raises(ValueError, match="stack_threshold"):
+        S.Union(*children, stack_threshold=0)
+    scene, _, _ = jr.config.loads("""
+[camera]
+eye = [0.0, 0.0, 3.0]
+target = [0.0, 0.0, 0.0]
+[materials.m]
+type = "lambert"
+albedo = [0.5, 0.5, 0.5]
+[surface]
+type = "union"
+stack_threshold = 2
+children = [{type = "sphere", material = "m"}, {type = "sphere", material = "m", radius = 0.5}]
+""")
+    assert scene.surface.stack_threshold == 2
