@@ -10,7 +10,7 @@ from .camera import OrthographicCamera as OrthographicCamera, PerspectiveCamera 
 from .lights import DirectionalLight as DirectionalLight, PointLight as PointLight
 from .render import Image as Image, render as render
 from .scene import Scene as Scene
-from .settings import RenderSettings as RenderSettings
+from .settings import KernelOptions as KernelOptions, RenderSettings as RenderSettings
 from .views import orbit as orbit, render_views as render_views, stack_cameras as stack_cameras
 from .trace import (
     Hit as Hit,

@@ -191,7 +191,7 @@ class _Loader:
         try:
             return RenderSettings(**values)
         except ValueError as e:
-            m = re.match(r"RenderSettings\.(\w+) = (.*), expected (.*)", str(e))
+            m = re.match(r"RenderSettings\.([\w.]+) = (.*), expected (.*)", str(e))
             if m:
                 raise ConfigError(f"{self.name}: settings.{m[1]} = {m[2]}, expected {m[3]}") from None
             raise ConfigError(f"{self.name}: settings: {e}") from None
@@ -250,7 +250,7 @@ class _Loader:
                 self.fail_missing(f"{key}.children", "a non-empty array of shape tables")
             children = args.pop("children")
             self.check_args(cls, args, key, varargs=True)
-            return self.construct(lambda: cls(*children), key)
+            return self.construct(lambda: cls(*children, **args), key)
         return self.construct_checked(cls, args, key)
 
     def heightfield(self, spec, key, names):

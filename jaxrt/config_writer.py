@@ -54,7 +54,7 @@ def _node(obj, registry, comments):
         if not hasattr(obj, field):
             continue
         v = getattr(obj, field)
-        if v is None:
+        if v is None or (name == "stack_threshold" and v == p.default):
             continue
         if isinstance(obj, Dielectric) and name == "eta" and isinstance(v, eqx.Module):
             model = ", ".join(f"{f.name}={float(getattr(v, f.name))!r}" for f in dataclasses.fields(v))
@@ -127,6 +127,10 @@ def dumps(scene, camera=None, settings=None):
         changed = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings)
                    if getattr(settings, f.name) != getattr(default, f.name)}
         changed = {k: list(v) if isinstance(v, tuple) else v for k, v in changed.items() if v is not None}
+        if "kernel" in changed:  # KernelOptions: its changed fields, as a [settings.kernel] table
+            k, k0 = changed["kernel"], default.kernel
+            changed["kernel"] = {f.name: getattr(k, f.name) for f in dataclasses.fields(k)
+                                 if getattr(k, f.name) != getattr(k0, f.name)}
         _table(lines, "settings", changed)
     for name, m in materials.items():
         _table(lines, f"materials.{name}", m)

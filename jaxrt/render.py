@@ -64,10 +64,11 @@ def _render(scene, camera, settings):
         out = {k: v.reshape((h, w * spp) + v.shape[1:]) for k, v in out.items()}
     else:  # a block of the image on each device, and the image kept in blocks on them
         devices = sharding.local_devices(settings.devices)
-        out = sharding.shard_image(trace_block, (scene, camera), samples, (h, w * spp), devices)
+        out = sharding.shard_image(trace_block, (scene, camera), samples, (h, w * spp), devices,
+                                   split=settings.split)
     out = {k: v.reshape((h, w, spp) + v.shape[2:]).mean(axis=2) for k, v in out.items()}
     if settings.devices != 1:
-        out = sharding.image_sharded(out, devices)
+        out = sharding.image_sharded(out, devices, split=settings.split)
     return Image(**out)
 
 

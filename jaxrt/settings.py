@@ -8,7 +8,99 @@ _DTYPES = ("float32", "float64")
 _BACKENDS = ("jax", "fused", "pallas", "auto")
 _ROOT_SOLVERS = ("newton", "optimistix")
 _RECURSIONS = ("unrolled", "scan")
+_SPLITS = ("columns", "rows")
 AOVS = ("depth", "normal", "albedo", "steps", "coverage")
+
+
+@dataclasses.dataclass(frozen=True)
+class KernelOptions:
+    """How the fused lane backends ("fused", "pallas"; `jaxrt.kernels.fused`) build their
+    programs: switches that change the compiled kernel, not the image (beyond rounding,
+    and for the Pallas fast-math forms a few ulps). A field of `RenderSettings`
+    (`kernel`), so they are part of the jit cache key: changing one recompiles. In TOML,
+    `[settings.kernel]` with any of these keys (`--set kernel={unroll=2}`).
+
+      interpret          Pallas interpret mode: None (default) = only without a GPU
+                         (tests); False forces the Triton lowering (to check it on a
+                         machine without a GPU: lower for platform "cuda").
+      pallas_num_warps   warps per Pallas program instance (Triton's num_warps); None:
+                         one warp per 64 rays, 1 to 4.
+      unroll             loop iterations of the one-ray program per test of a block's
+      pallas_unroll      loop condition (a reduction over the block; inactive lanes keep
+                         their state either way), for "fused" and "pallas". On an H200
+                         (Warp scene, 2048×1024, rgb only) 2 rendered in 0.280 ms
+                         against 0.300 ms for 1 (same run): the test is a
+                         14-instruction warp reduction, against about 50 for a march step.
+      materialize        "fused" on XLA: materialise function results outside loops
+                         (`lanes.control._barrier`). On a 2-core Sapphire Rapids with jax 0.10.2
+                         this made "fused" 3× faster on the Warp scene.
+      pallas_fma         fuse a product used once by an add or sub into a fused
+                         multiply-add (PTX `fma.rn.f32`: one rounding instead of two;
+                         Triton as JAX drives it does not contract them itself).
+      pallas_uniforms    read the values shared by all rays (functions of the
+                         parameters alone, outside loops) from a vector computed once
+                         before the kernel (`lanes.Uniforms`), not in every thread.
+      pallas_fast_math   per-ray sqrt, rsqrt, division, exp, log and pow as PTX's
+                         approximate instructions (what CUDA's --use_fast_math compiles;
+                         pow of a negative base is NaN), division by shared values as a
+                         multiplication. On the Warp scene it moved a few pixels by up
+                         to 3.4e-3 and rendered in 0.304 ms instead of 0.332 ms (H200).
+      auto_max_lane_ops_fused, auto_max_lane_ops_pallas
+                         backend "auto" renders one-ray programs of more lane operations
+                         than this (`lanes.program_size`: elementwise operations, times
+                         the rays of the batched levels of a ray tree) with "jax": their
+                         compile time grows with it, Triton's faster than linearly. The
+                         Warp scene has 3.1k lane operations (Pallas compiles it in 3 s
+                         on an H200), the showcase 38k (Pallas: 304 s; "fused": 56 s on 2
+                         CPU cores), the glass scene 671k at max_depth 6.
+      pallas_block       rays per Pallas program instance when batch_size does not say
+                         otherwise (`fused.pallas_block`): a 4×8 tile on one warp. On an
+                         H100 (Warp scene) 0.431 ms against 0.475 ms for 16×16 tiles on
+                         four warps.
+    """
+
+    interpret: bool | None = None
+    pallas_num_warps: int | None = None
+    unroll: int = 1
+    pallas_unroll: int = 2
+    materialize: bool = True
+    pallas_fma: bool = True
+    pallas_uniforms: bool = True
+    pallas_fast_math: bool = True
+    auto_max_lane_ops_fused: int = 60_000
+    auto_max_lane_ops_pallas: int = 10_000
+    pallas_block: int = 32
+
+    def __post_init__(self):
+        def need(ok, field, expected):
+            if not ok:
+                value = getattr(self, field)
+                raise ValueError(f"RenderSettings.kernel.{field} = {value!r}, expected {expected}")
+
+        need(self.interpret is None or isinstance(self.interpret, bool), "interpret",
+             "true, false or None")
+        need(self.pallas_num_warps is None or (_is_int(self.pallas_num_warps)
+                                               and self.pallas_num_warps in (1, 2, 4, 8, 16)),
+             "pallas_num_warps", "None or a power of two in [1, 16]")
+        need(_is_int(self.unroll) and self.unroll >= 1, "unroll", "an integer ≥ 1")
+        need(_is_int(self.pallas_unroll) and self.pallas_unroll >= 1, "pallas_unroll",
+             "an integer ≥ 1")
+        for name in ("materialize", "pallas_fma", "pallas_uniforms", "pallas_fast_math"):
+            need(isinstance(getattr(self, name), bool), name, "true or false")
+        for name in ("auto_max_lane_ops_fused", "auto_max_lane_ops_pallas"):
+            need(_is_int(getattr(self, name)) and getattr(self, name) >= 0, name,
+                 "an integer ≥ 0")
+        need(_is_int(self.pallas_block) and 16 <= self.pallas_block <= 256, "pallas_block",
+             "an integer in [16, 256] (rounded down to a power of two)")
+
+    def auto_max_lane_ops(self, backend):
+        """The "auto" size limit for the fused `backend` ("fused" or "pallas")."""
+        return {"fused": self.auto_max_lane_ops_fused,
+                "pallas": self.auto_max_lane_ops_pallas}[backend]
+
+    def replace(self, **changes):
+        """A copy with some options changed (validated)."""
+        return dataclasses.replace(self, **changes)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,6 +183,11 @@ class RenderSettings:
                        fused kernels store only these), e.g. aovs=() for rgb only.
       devices          local devices to shard the image's rows over (`jaxrt.sharding`;
                        1: no sharding, default; 0: all local devices).
+      split            the image axis cut into one block per device: "columns"
+                       (default) or "rows".
+      kernel           `KernelOptions`: how the fused lane backends build their
+                       kernels (unroll, Pallas warps and fast math, "auto"'s size
+                       limits, ...).
       silhouette       silhouette-aware pixel coverage (`jaxrt.silhouette`). Off
                        (default), every sample is a point sample: an outline moving
                        across a pixel changes it by a jump, so the gradient of any
@@ -147,6 +244,13 @@ class RenderSettings:
     # (integrator.analytic_planes): a floor reaches the horizon instead of ending at
     # max_distance. False: planes are only sphere-traced, like every other shape.
     analytic_planes: bool = True
+    # The image axis cut into one block per device when devices != 1 (`jaxrt.sharding`):
+    # "columns" (default: left and right of a frame usually march alike, top and
+    # bottom do not) or "rows".
+    split: str = "columns"
+    # How the fused lane backends build their kernels (`KernelOptions`; in the cache
+    # key like every field). A {key: value} table (TOML) is read as KernelOptions(**table).
+    kernel: KernelOptions = dataclasses.field(default_factory=KernelOptions)
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -204,6 +308,15 @@ class RenderSettings:
         )
         need(self.root_solver in _ROOT_SOLVERS, "root_solver", f"one of {_ROOT_SOLVERS}")
         need(isinstance(self.analytic_planes, bool), "analytic_planes", "true or false")
+        need(self.split in _SPLITS, "split", f"one of {_SPLITS}")
+        if isinstance(self.kernel, dict):  # from TOML or --set
+            unknown = sorted(set(self.kernel) - {f.name for f in dataclasses.fields(KernelOptions)})
+            if unknown:
+                raise ValueError(f"RenderSettings.kernel.{unknown[0]} = {self.kernel[unknown[0]]!r}, "
+                                 f"expected a KernelOptions field, one of "
+                                 f"{[f.name for f in dataclasses.fields(KernelOptions)]}")
+            object.__setattr__(self, "kernel", KernelOptions(**self.kernel))
+        need(isinstance(self.kernel, KernelOptions), "kernel", "a KernelOptions (or a table of its fields)")
 
     def replace(self, **changes):
         """A copy with some dials changed (validated)."""

@@ -1,7 +1,7 @@
 """Rendering on several devices: the image sharded with `jax.sharding`.
 
 `RenderSettings(devices=D)` makes `render` cut the image into D contiguous blocks of
-columns (or of rows, `SPLIT`) and trace each on its own local device with
+columns (or of rows, `RenderSettings.split`) and trace each on its own local device with
 `jax.shard_map` over a one-axis `Mesh` ("pixels"): each device gets the whole scene
 (replicated, a few kilobytes) and the offset of its block, its rays are independent of
 the others', so the devices never talk to each other, and the blocks are the shards of
@@ -33,7 +33,9 @@ __all__ = ["local_devices", "pixel_mesh", "shard_image", "shard_views", "image_s
 
 AXIS = "pixels"
 
-#: The image axis cut into one block per device: "columns" or "rows".
+#: The image axis cut into one block per device unless a call says otherwise
+#: (`render` passes `RenderSettings.split`): "columns" or "rows". A constant: nothing
+#: changes it at run time.
 SPLIT = "columns"
 
 
@@ -59,7 +61,7 @@ def pixel_mesh(devices):
 
 def _spec(split):
     if split not in ("rows", "columns"):
-        raise ValueError(f'jaxrt.sharding.SPLIT = {split!r}: expected "rows" or "columns"')
+        raise ValueError(f'split = {split!r}: expected "rows" or "columns"')
     return P(AXIS) if split == "rows" else P(None, AXIS)
 
 

@@ -127,16 +127,15 @@ def test_erfc_for_targets_without_it_is_within_its_fit_error():
     assert rel.max() < 1.2e-7, rel.max()
 
 
-def test_pallas_kernel_lowers_for_cuda_with_ptx_forms(small_scene, monkeypatch):
+def test_pallas_kernel_lowers_for_cuda_with_ptx_forms(small_scene):
     """Without a GPU, the Triton lowering of a render (not its compilation) still runs:
     the kernel with fused multiply-adds and PTX fast math lowers for CUDA."""
-    from jaxrt.kernels import fused
     import equinox as eqx
     from jaxrt.render import _cast, _render
 
-    monkeypatch.setattr(fused, "INTERPRET", False)
     scene, camera, _ = small_scene
-    settings = jr.RenderSettings(backend="pallas", shadows="soft", batch_size=32, aovs=())
+    settings = jr.RenderSettings(backend="pallas", shadows="soft", batch_size=32, aovs=(),
+                                 kernel=jr.KernelOptions(interpret=False))
     dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
     f = jax.jit(lambda d: _render.__wrapped__(*eqx.combine(d, static), settings))
     text = f.trace(dyn).lower(lowering_platforms=("cuda",)).as_text()
@@ -247,10 +246,10 @@ def test_auto_backend_falls_back_where_lanes_cannot_run():
     assert resolve_backend("auto") == ("pallas" if jax.default_backend() == "gpu" else "fused")
 
 
-def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly(monkeypatch):
-    """backend="auto" renders a program of more lane operations than AUTO_MAX_LANE_OPS
+def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly():
+    """backend="auto" renders a program of more lane operations than
+    settings.kernel.auto_max_lane_ops_<backend>
     (a batch of rays counts once per ray, as lanes unroll it) with the vmapped path."""
-    from jaxrt.kernels import fused
     from jaxrt.kernels.lanes import program_size
 
     def fn(params, px, py):
@@ -265,13 +264,17 @@ def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly(monke
     def reference(params, s):
         return jax.vmap(lambda q: fn(params, q[0], q[1]))(s)
 
-    settings = jr.RenderSettings(backend="auto")
     backend = resolve_backend("auto")
-    monkeypatch.setitem(fused.AUTO_MAX_LANE_OPS, backend, 3 * 12)
+
+    def settings_with_limit(limit):
+        return jr.RenderSettings(backend="auto", kernel=jr.KernelOptions(
+            **{f"auto_max_lane_ops_{backend}": limit}))
+
+    settings = settings_with_limit(3 * 12)
     with pytest.warns(UserWarning, match="lane operations"):
         out = map_samples(fn, jnp.float64(2.0), samples, settings, reference)
     np.testing.assert_allclose(out["v"], reference(jnp.float64(2.0), samples)["v"])
-    monkeypatch.setitem(fused.AUTO_MAX_LANE_OPS, backend, 10 * size)
+    settings = settings_with_limit(10 * size)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # under the limit: the fused path, no warning
         out = map_samples(fn, jnp.float64(2.0), samples, settings, reference)
@@ -279,10 +282,10 @@ def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly(monke
 
 
 def test_store_is_exact_and_a_fusion_boundary_on_cpu():
-    """lanes._materialise (how "fused" materialises shared lanes on XLA:CPU) returns its input
+    """lanes.control._materialise (how "fused" materialises shared lanes on XLA:CPU) returns its input
     bit for bit, and XLA computes a stored expression once: without the store, the
     shared chain is fused into (so recomputed in) each of 8 consumer outputs."""
-    from jaxrt.kernels.lanes import _materialise as _store
+    from jaxrt.kernels.lanes.control import _materialise as _store
 
     x = np.array([0.0, -0.0, 1.5, -np.inf, np.inf, np.nan, 1e-45, -3e38], np.float32)
     got = np.asarray(jax.jit(_store)(x))
@@ -332,3 +335,67 @@ def test_batched_while_steps_only_its_active_elements():
     want = reference(jnp.float64(1.0), samples)
     np.testing.assert_array_equal(out["n"], want["n"])
     np.testing.assert_array_equal(out["t"], want["t"])
+
+
+def test_kernel_options_are_part_of_the_cache_key():
+    """`RenderSettings.kernel` is static: after a render, changing an option changes the
+    compiled program (no cache clearing). "auto" with a lane-operation limit of 1 falls
+    back to "jax" (a warning) although the same scene was just rendered fused; and the
+    fused program with unroll=2 lowers to other code than with unroll=1."""
+    import equinox as eqx
+    from jaxrt.render import _cast, _render
+
+    scene = jr.Scene(surface=jr.sdf.Sphere(radius=1.0, material=0),
+                     materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2))],
+                     lights=[jr.DirectionalLight(direction=(0.3, 1.0, 0.5), irradiance=(1.0, 1.0, 1.0))])
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
+                                  fov=45.0, width=6, height=4)
+    base = jr.RenderSettings(backend="auto", batch_size=64, aovs=(), shadows="none", max_depth=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        first = jr.render(scene, camera, base)
+    backend = resolve_backend("auto")
+    tiny = base.replace(kernel=base.kernel.replace(**{f"auto_max_lane_ops_{backend}": 1}))
+    with pytest.warns(UserWarning, match="auto_max_lane_ops"):
+        again = jr.render(scene, camera, tiny)
+    np.testing.assert_allclose(np.asarray(again.rgb), np.asarray(first.rgb), atol=1e-4)
+
+    dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
+
+    def lowered(settings):
+        f = jax.jit(lambda d: _render.__wrapped__(*eqx.combine(d, static), settings))
+        return f.trace(dyn).lower().as_text()
+
+    fused = base.replace(backend="fused")
+    assert lowered(fused) != lowered(fused.replace(kernel=jr.KernelOptions(unroll=2)))
+    assert hash(fused) != hash(fused.replace(kernel=jr.KernelOptions(unroll=2)))
+
+
+def test_kernel_options_are_validated_like_other_settings():
+    """KernelOptions reject bad values with the field's name; a TOML table (a [settings]
+    sub-table or `--set kernel={...}`) is read as KernelOptions and checked as such."""
+    with pytest.raises(ValueError, match=r"RenderSettings.kernel.unroll = 0, expected"):
+        jr.KernelOptions(unroll=0)
+    with pytest.raises(ValueError, match=r"RenderSettings.kernel.pallas_block"):
+        jr.RenderSettings(kernel={"pallas_block": 4})
+    with pytest.raises(ValueError, match=r"RenderSettings.kernel.speed"):
+        jr.RenderSettings(kernel={"speed": 11})
+    with pytest.raises(ValueError, match=r"RenderSettings.split"):
+        jr.RenderSettings(split="diagonal")
+    s = jr.RenderSettings(kernel={"unroll": 3, "pallas_fma": False})
+    assert s.kernel == jr.KernelOptions(unroll=3, pallas_fma=False)
+    assert jr.config.check_settings({"kernel": {"unroll": 2}}).kernel.unroll == 2
+    from jaxrt.cli import parse_overrides
+
+    over = parse_overrides(["kernel={unroll=2, pallas_fma=false}", "split=rows"])
+    got = jr.config.check_settings(over, "--set")
+    assert got.kernel == jr.KernelOptions(unroll=2, pallas_fma=False) and got.split == "rows"
+    with pytest.raises(jr.config.ConfigError, match=r"settings.kernel.unroll = 0, expected"):
+        jr.config.check_settings({"kernel": {"unroll": 0}}, "--set")
+    text = jr.config_writer.dumps(jr.Scene(surface=jr.sdf.Sphere(radius=1.0, material=0),
+                                           materials=[jr.bsdf.Lambert(albedo=(0.5, 0.5, 0.5))],
+                                           lights=[]),
+                                  jr.PerspectiveCamera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0),
+                                                       up=(0.0, 1.0, 0.0), fov=45.0, width=4,
+                                                       height=4), settings=s)
+    assert jr.config.loads(text)[2].kernel == s.kernel, text

@@ -195,13 +195,14 @@ def test_parameter_change_does_not_retrace():
     np.testing.assert_allclose([d0, d1], [-0.5, -0.25], rtol=1e-14)
 
 
-def many_spheres_scene():
+def many_spheres_scene(stack_threshold=stack.STACK_THRESHOLD):
     rng = np.random.default_rng(5)
     children = [S.Translate(S.Sphere(radius=0.2 + 0.15 * rng.uniform(), material=0),
                             offset=(rng.uniform(-1.2, 1.2), 0.4, rng.uniform(-1.0, 0.2)))
                 for i in range(8)]
     children += [S.Translate(S.Sphere(radius=0.25, material=1), offset=(x, 0.3, 0.6)) for x in (-0.6, 0.6)]
-    surface = S.Union(*children, S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=2))
+    surface = S.Union(*children, S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=2),
+                      stack_threshold=stack_threshold)
     scene = jr.Scene(surface=surface,
                      materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2)),
                                 jr.bsdf.Lambert(albedo=(0.2, 0.5, 0.8)),
@@ -214,16 +215,45 @@ def many_spheres_scene():
 
 
 @pytest.mark.parametrize("backend", ["fused", pytest.param("pallas", marks=pytest.mark.slow)])
-def test_stacked_union_renders_the_same_through_lanes(backend, monkeypatch):
+def test_stacked_union_renders_the_same_through_lanes(backend):
     """8 spheres (stacked, scanned) + 2 spheres and a plane (a loop): the lane backends
     (which unroll the scan; Pallas in interpret mode on CPUs) give the image of the
     loop union."""
     scene, camera = many_spheres_scene()
     settings = jr.RenderSettings(batch_size=16)
     got = jr.render(scene, camera, settings.replace(backend=backend))
-    monkeypatch.setattr(stack, "STACK_THRESHOLD", LOOP)
-    want = jr.render(scene, camera, settings)
+    loop_scene, _ = many_spheres_scene(stack_threshold=LOOP)
+    want = jr.render(loop_scene, camera, settings)
     np.testing.assert_array_equal(np.asarray(got.coverage), np.asarray(want.coverage))
     np.testing.assert_allclose(np.asarray(got.rgb), np.asarray(want.rgb), atol=1e-4)
     np.testing.assert_allclose(np.asarray(got.depth), np.asarray(want.depth), rtol=1e-5, atol=1e-5)
     assert len(np.unique(np.asarray(want.albedo).reshape(-1, 3), axis=0)) >= 3  # all materials seen
+
+
+def test_stack_threshold_is_a_static_field_of_the_union():
+    """`Union(stack_threshold=...)` is part of the scene's structure (so of the jit cache
+    key): the same children looped or stacked are different programs, with the same
+    distances; it is validated and read from TOML."""
+    children = [S.Translate(S.Sphere(radius=0.3, material=0), offset=(1.0 * i, 0.0, 0.0))
+                for i in range(8)]
+    stacked, looped = S.Union(*children), S.Union(*children, stack_threshold=LOOP)
+    assert jax.tree_util.tree_structure(stacked) != jax.tree_util.tree_structure(looped)
+    p = jnp.array([0.2, 0.1, -0.4])
+    size = [len(jax.make_jaxpr(u.eval)(p).jaxpr.eqns) for u in (stacked, looped)]
+    assert size[0] < size[1], size
+    np.testing.assert_allclose(stacked.eval(p)[0], looped.eval(p)[0], rtol=1e-15)
+    with pytest.raises(ValueError, match="stack_threshold"):
+        S.Union(*children, stack_threshold=0)
+    scene, _, _ = jr.config.loads("""
+[camera]
+eye = [0.0, 0.0, 3.0]
+target = [0.0, 0.0, 0.0]
+[materials.m]
+type = "lambert"
+albedo = [0.5, 0.5, 0.5]
+[surface]
+type = "union"
+stack_threshold = 2
+children = [{type = "sphere", material = "m"}, {type = "sphere", material = "m", radius = 0.5}]
+""")
+    assert scene.surface.stack_threshold == 2

@@ -19,7 +19,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(Path(__file__).parent))
-from warp_scene import _set_kernel_knobs  # noqa: E402  (the variants' Pallas knobs)
+from warp_scene import kernel_options  # noqa: E402  (the variants' Pallas knobs)
 
 
 def main(argv=None):
@@ -31,7 +31,7 @@ def main(argv=None):
     ap.add_argument("--height", type=int)
     ap.add_argument("--devices", type=int, action="append", help="RenderSettings.devices values")
     ap.add_argument("--split", action="append", choices=["columns", "rows"],
-                    help="jaxrt.sharding.SPLIT values (the image axis cut over the devices)")
+                    help="RenderSettings.split values (the image axis cut over the devices)")
     ap.add_argument("--no-trace", action="store_true", help="time only, no profile")
     args = ap.parse_args(argv)
     cfg = tomllib.loads(Path(args.config).read_text())
@@ -50,12 +50,11 @@ def main(argv=None):
     from jaxrt import sharding
 
     runs = [(name, d, s) for name in (args.variant or ["pallas-fast"]) for d in (args.devices or [1])
-            for s in ((args.split or [sharding.SPLIT]) if d != 1 else [sharding.SPLIT])]
+            for s in ((args.split or [base.split]) if d != 1 else [base.split])]
     for name, devices, split in runs:
         overrides = dict(cfg["variants"][name])
-        _set_kernel_knobs(overrides.pop("kernel", {}))
-        sharding.SPLIT = split
-        settings = base.replace(**overrides, devices=devices)
+        kernel = kernel_options(overrides.pop("kernel", {}))
+        settings = base.replace(**overrides, devices=devices, split=split, kernel=kernel)
         name = f"{name} devices={devices}" + (f" split={split}" if devices != 1 else "")
         f = jax.jit(lambda d, settings=settings: _render.__wrapped__(*eqx.combine(d, static), settings))
         dyn_ = dyn

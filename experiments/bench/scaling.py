@@ -114,7 +114,7 @@ def _pixels(cfg, section):
     return rows
 
 
-def primitive_scene(n, width, height):
+def primitive_scene(n, width, height, stack_threshold=None):
     """n spheres on a grid over a plane, in one Union (n + 1 children): two kinds of
     sphere (materials 0 and 1, n/2 each) and the plane."""
     import jaxrt as jr
@@ -126,7 +126,8 @@ def primitive_scene(n, width, height):
         x, z = (i % k - (k - 1) / 2) * 1.2, (i // k - (k - 1) / 2) * 1.2
         spheres.append(S.Translate(S.Sphere(radius=0.5, material=i % 2), offset=(x, 0.5, z)))
     children = [*spheres, S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=2)]
-    surface = S.Union(*children)
+    surface = S.Union(*children) if stack_threshold is None else \
+        S.Union(*children, stack_threshold=stack_threshold)
     scene = jr.Scene(surface=surface,
                      materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2)),
                                 jr.bsdf.Lambert(albedo=(0.2, 0.5, 0.8)),
@@ -148,23 +149,16 @@ def _primitives(cfg, section):
     """Compile and render time against the number of spheres in one `sdf.Union`:
     "library" (the Union as shipped: groups of ≥ STACK_THRESHOLD children of one kind
     stacked), "loop" (every child a copy in the program, as before stacking) and
-    "stacked" (every group of ≥ 2 stacked), each up to cfg["max_count"][variant]."""
-    from jaxrt.sdf import stack
-
+    "stacked" (every group of ≥ 2 stacked), each up to cfg["max_count"][variant]
+    (`Union(stack_threshold=...)`)."""
     rows = []
     st = _settings(section)
-    default = stack.STACK_THRESHOLD
     for union in cfg.get("unions", list(UNIONS)):
         for n in cfg["counts"]:
             if n > cfg.get("max_count", {}).get(union, n):
                 continue
-            threshold = UNIONS[union]
-            stack.STACK_THRESHOLD = default if threshold is None else threshold
-            try:
-                scene, camera = primitive_scene(n, *cfg["size"])
-                tl, tc, t, img = measure(scene, camera, st, section["repeats"])
-            finally:
-                stack.STACK_THRESHOLD = default
+            scene, camera = primitive_scene(n, *cfg["size"], stack_threshold=UNIONS[union])
+            tl, tc, t, img = measure(scene, camera, st, section["repeats"])
             rows.append(dict(union=union, primitives=n, trace_lower_s=tl, xla_compile_s=tc,
                              compile_s=tl + tc, compile_per_primitive_ms=1e3 * (tl + tc) / n,
                              render_ms=1e3 * t, mean_rgb=float(np.asarray(img.rgb).mean())))

@@ -101,8 +101,7 @@ def main(argv=None):
         overrides = dict(cfg["variants"][name])
         knobs = overrides.pop("kernel", {})
         xla = overrides.pop("xla", None)  # XLA compiler options of this variant
-        settings = base.replace(**overrides)
-        _set_kernel_knobs(knobs)
+        settings = base.replace(**overrides, kernel=kernel_options(knobs))
         jax.clear_caches()
         t0 = time.perf_counter()
         f = jax.jit(lambda d, settings=settings: _render.__wrapped__(*eqx.combine(d, static), settings))
@@ -178,23 +177,16 @@ def main(argv=None):
     return result
 
 
-def _set_kernel_knobs(knobs):
-    from jaxrt.kernels import fused
+def kernel_options(knobs):
+    """A variant's [kernel] table (num_warps, unroll, fast_math, fma, uniforms) as
+    `jaxrt.KernelOptions` (part of RenderSettings, so of the jit cache key); the
+    library's choices where the variant says nothing."""
+    import jaxrt as jr
 
-    defaults = _KERNEL_DEFAULTS.setdefault("knobs", {k: getattr(fused, k) for k in (
-        "PALLAS_NUM_WARPS", "UNROLL", "PALLAS_UNROLL", "PALLAS_FAST_MATH", "PALLAS_FMA",
-        "PALLAS_UNIFORMS")})
-    for key, value in defaults.items():  # the library's choices unless the variant says
-        setattr(fused, key, value)
-    for name, value in knobs.items():
-        keys = {"num_warps": ["PALLAS_NUM_WARPS"], "unroll": ["UNROLL", "PALLAS_UNROLL"],
-                "fast_math": ["PALLAS_FAST_MATH"], "fma": ["PALLAS_FMA"],
-                "uniforms": ["PALLAS_UNIFORMS"]}[name]
-        for key in keys:
-            setattr(fused, key, value)
-
-
-_KERNEL_DEFAULTS = {}
+    keys = {"num_warps": ["pallas_num_warps"], "unroll": ["unroll", "pallas_unroll"],
+            "fast_math": ["pallas_fast_math"], "fma": ["pallas_fma"],
+            "uniforms": ["pallas_uniforms"]}
+    return jr.KernelOptions(**{key: value for name, value in knobs.items() for key in keys[name]})
 
 
 def _render_at(scene, camera, settings, dx, dy):

@@ -1,6 +1,6 @@
 """Fused kernels: the one-ray programs of jaxrt run lane-wise over blocks of rays.
 
-- `eval_lanes`: interpret the jaxpr of a one-ray program on a block of rays (`lanes.py`).
+- `eval_lanes`: interpret the jaxpr of a one-ray program on a block of rays (the package `lanes`).
 - `map_samples`: the per-sample render pipeline on tiles (XLA) or in one Pallas GPU
   kernel (`fused.py`); selected by `RenderSettings.backend`.
 """

@@ -33,64 +33,15 @@ from .lanes import Uniforms, Unsupported, eval_lanes, lanes_of, program_size, st
 
 __all__ = ["map_samples", "resolve_backend", "Unsupported", "pallas_block", "tile_shape"]
 
-#: Pallas interpret mode: None = only without a GPU (tests); False forces the Triton
-#: lowering (to check it on a machine without a GPU: lower for platform "cuda").
-INTERPRET = None
-
-#: Warps per Pallas program instance (Triton's num_warps); None: one warp per 64 rays,
-#: 1 to 4.
-PALLAS_NUM_WARPS = None
-
-#: Loop iterations of the one-ray program per test of a block's loop condition (the
-#: test is a reduction over the block; inactive lanes keep their state either way):
-#: UNROLL for "fused", PALLAS_UNROLL for "pallas". On an H200 (Warp scene, 2048×1024,
-#: rgb only) 2 rendered in 0.280 ms against 0.300 ms for 1 (same run): the test is a
-#: 14-instruction warp reduction, against about 50 for a march step.
-UNROLL = 1
-PALLAS_UNROLL = 2
-
-#: "fused" on XLA: materialise function results outside loops (`lanes._barrier`). On a
-#: 2-core Sapphire Rapids with jax 0.10.2 this made "fused" 3× faster on the Warp scene
-#: once the stores were reductions (XLA removed the optimization barriers used before).
-MATERIALIZE = True
-
-#: Pallas kernels fuse a product used once by an add or sub into a fused multiply-add
-#: (PTX `fma.rn.f32`: one rounding instead of two; Triton as JAX drives it does not
-#: contract them itself).
-PALLAS_FMA = True
-
-#: Pallas kernels read the values shared by all rays (functions of the parameters
-#: alone, outside loops: a camera basis, tan(fov/2), normalised directions) from a
-#: vector computed once before the kernel (`lanes.Uniforms`), not every thread.
-PALLAS_UNIFORMS = True
-
-#: Pallas kernels use `lanes._fast_math`: per-ray sqrt, rsqrt, division, exp, log and
-#: pow as PTX's approximate instructions (`sqrt.approx.ftz` and so on: what CUDA's
-#: --use_fast_math compiles; pow of a negative base is NaN), division by shared values
-#: as a multiplication. On the Warp scene it moved a few pixels by up to 3.4e-3 (0.000%
-#: of them by more than 1e-3) and rendered in 0.304 ms instead of 0.332 ms (an H200).
-PALLAS_FAST_MATH = True
-
-#: "auto" renders one-ray programs of more lane operations than this (`lanes.program_size`:
-#: elementwise operations, times the rays of the batched levels of a ray tree, which
-#: lanes unroll) with "jax", per fused backend: their compile time grows with it, Triton's
-#: faster than linearly. The Warp scene has 3.1k lane operations (Pallas compiles it in
-#: 3 s on an H200), the showcase 38k (Pallas: 304 s; "fused": 56 s on 2 CPU cores), the
-#: glass scene 40k at max_depth 2, 168k at 4 ("fused": 138 s; "jax": 20 s) and 671k at
-#: its file's 6 (Pallas: over 9 minutes, stopped).
-AUTO_MAX_LANE_OPS = {"pallas": 10_000, "fused": 60_000}
+# How the kernels are built (unroll, Pallas warps, fast math, FMA, uniforms, "auto"'s
+# size limits, the Pallas block) is `settings.kernel` (`jaxrt.settings.KernelOptions`):
+# settings are static, so each choice is part of the jit cache key.
 
 #: Elementwise primitives that Pallas' Triton lowering lacks (jax 0.10/0.11). erfc (a
 #: Beckmann distribution's Smith term) is computed from a Chebyshev fit instead
-#: (`lanes._erfc`, fractional error < 1.2e-7); a program using the others is Unsupported
+#: (`lanes.gpu._erfc`, fractional error < 1.2e-7); a program using the others is Unsupported
 #: for "pallas", and "auto" renders it with the "jax" program.
 TRITON_UNSUPPORTED = ("erf", "erfc", "lgamma", "digamma", "bessel_i0e", "bessel_i1e")
-
-#: Rays per Pallas program instance when batch_size does not say otherwise: a 4×8 tile
-#: on one warp, so that a warp stops as soon as its own rays are done. On an H100 (Warp
-#: scene, 2048×1024) it rendered in 0.431 ms against 0.475 ms for 16×16 tiles on four
-#: warps (same run; 8×8 and 8×16 tiles on 1–4 warps took 0.49–0.51 ms).
-PALLAS_BLOCK = 32
 
 
 def map_samples(fn, params, samples, settings, reference, grid=None, centres=None):
@@ -145,12 +96,13 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
 
         try:
             size = program_size(_trace_one(one, dyn, samples.dtype)[0].jaxpr)
-            if size > AUTO_MAX_LANE_OPS[backend]:
+            limit = settings.kernel.auto_max_lane_ops(backend)
+            if size > limit:
                 raise Unsupported(
                     f"the one-ray program has {size} lane operations (more than "
-                    f"jaxrt.kernels.fused.AUTO_MAX_LANE_OPS[{backend!r}] = "
-                    f"{AUTO_MAX_LANE_OPS[backend]}: a large scene or a deep ray tree), whose "
-                    f"{backend} kernel would compile for minutes")
+                    f"RenderSettings.kernel.auto_max_lane_ops_{backend} = {limit}: a large "
+                    f"scene or a deep ray tree), whose {backend} kernel would compile for "
+                    "minutes")
             jax.eval_shape(lambda d, s: run(d, s), jax.tree_util.tree_map(abstract, dyn),
                            abstract(samples))
         except Exception as e:  # noqa: BLE001  any lane failure (also a JAX version's
@@ -199,7 +151,7 @@ def _from_tiles(x, grid):
 def resolve_backend(backend):
     """"auto" → "pallas" on a GPU, "fused" elsewhere; others unchanged. (On 2 CPU
     cores the fused lanes rendered the Warp scene 1.4–2× faster than vmap; they were
-    slower while XLA:CPU recomputed shared lanes, see `lanes._materialise`.)"""
+    slower while XLA:CPU recomputed shared lanes, see `lanes.control._materialise`.)"""
     if backend == "auto":
         return "pallas" if jax.default_backend() == "gpu" else "fused"
     return backend
@@ -230,8 +182,8 @@ def _tiles(one, dyn, samples, settings, grid):
     def run_tile(sb):
         args = [lanes_of(leaf) for leaf in leaves]
         args += [_lane(sb[..., 0]), _lane(sb[..., 1])]
-        outs = eval_lanes(closed, args, tile, unroll=UNROLL,
-                          materialize=MATERIALIZE, roll_scans=True)
+        outs = eval_lanes(closed, args, tile, unroll=settings.kernel.unroll,
+                          materialize=settings.kernel.materialize, roll_scans=True)
         return [stack_lanes(o, tile, sh.dtype) for o, sh in zip(outs, out_leaves)]
 
     if ty * tx == 1:
@@ -253,9 +205,10 @@ def _lane(x):
 
 def pallas_block(settings):
     """Rays per program instance: batch_size (a power of two, 16–256) when it is at most
-    256, else (None, or a CPU-sized tile such as the default 4096) PALLAS_BLOCK."""
+    256, else (None, or a CPU-sized tile such as the default 4096)
+    settings.kernel.pallas_block."""
     b = settings.batch_size
-    b = PALLAS_BLOCK if b is None or b > 256 else b
+    b = settings.kernel.pallas_block if b is None or b > 256 else b
     return max(16, 1 << (int(b).bit_length() - 1))
 
 
@@ -324,17 +277,18 @@ def _pallas(one, dyn, samples, settings, grid, centres=None):
     rows, cols = grid
     th, tw = tile_shape(pallas_block(settings), grid, pow2=True)
     ty, tx = -(-rows // th), -(-cols // tw)
-    interpret = (jax.default_backend() != "gpu") if INTERPRET is None else INTERPRET
+    opts = settings.kernel
+    interpret = (jax.default_backend() != "gpu") if opts.interpret is None else opts.interpret
     ptx = None
-    if dtype == jnp.float32 and (PALLAS_FMA or PALLAS_FAST_MATH):
-        ptx = {k: f for k, f in _ptx_ops(interpret).items() if PALLAS_FMA or k != "fma"}
-    lane_options = dict(unroll=PALLAS_UNROLL, fast_math=PALLAS_FAST_MATH,
+    if dtype == jnp.float32 and (opts.pallas_fma or opts.pallas_fast_math):
+        ptx = {k: f for k, f in _ptx_ops(interpret).items() if opts.pallas_fma or k != "fma"}
+    lane_options = dict(unroll=opts.pallas_unroll, fast_math=opts.pallas_fast_math,
                         unsupported=TRITON_UNSUPPORTED, bool_carries=True)
 
     # the values shared by all rays, computed here (the lane program evaluated once on
     # placeholder rays, whose work XLA then drops) and read by the kernel
     recorded = None
-    if PALLAS_UNIFORMS and dtype == jnp.float32:
+    if opts.pallas_uniforms and dtype == jnp.float32:
         recorded = Uniforms()
         placeholder = _lane(jnp.zeros((th, tw), dtype))
         eval_lanes(closed, [lanes_of(x) for x in leaves] + [placeholder, placeholder],
@@ -409,7 +363,7 @@ def _pallas(one, dyn, samples, settings, grid, centres=None):
     if not interpret:
         from jax.experimental.pallas import triton as pltriton
 
-        warps = PALLAS_NUM_WARPS or max(1, min(4, (th * tw) // 64))
+        warps = opts.pallas_num_warps or max(1, min(4, (th * tw) // 64))
         kwargs["compiler_params"] = pltriton.CompilerParams(num_warps=warps, num_stages=1)
     # one output array per output of the program, in image layout ([rows, columns] and
     # its components last, as the caller wants them): written once, no padding rows

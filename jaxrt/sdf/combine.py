@@ -11,11 +11,12 @@ The material of a combination is the material of the operand that is active (the
 smaller one for a union, the larger one for an intersection).
 """
 
+import equinox as eqx
 import jax.numpy as jnp
 
 from ..vecmath import maximum as _max, minimum as _min, safe_div
 from .base import SDF, check_sdf, non_negative
-from .stack import union_eval, union_lipschitz
+from .stack import STACK_THRESHOLD, union_eval, union_lipschitz
 
 
 def op_union(d1, d2):
@@ -56,29 +57,35 @@ class Union(SDF):
     The material is that of the nearest child (the first one on ties). Children of one
     structure (same node types and static fields, e.g. many `Translate(Sphere)` with
     one material) are evaluated stacked, one `lax.scan` over their stacked leaves, when
-    a group has at least `stack.STACK_THRESHOLD` members: the traced program holds
-    one copy per *kind* of child, so compile time stays flat as children are added
-    (`jaxrt.sdf.stack`). `children_` stays the user-facing field: `eqx.tree_at(lambda
-    s: s.children_[i].radius, ...)` and gradients reach every child.
+    a group has at least `stack_threshold` members (default `stack.STACK_THRESHOLD`;
+    a static field, so part of the scene's structure and of the jit cache key): the
+    traced program holds one copy per *kind* of child, so compile time stays flat as
+    children are added (`jaxrt.sdf.stack`). `children_` stays the user-facing field:
+    `eqx.tree_at(lambda s: s.children_[i].radius, ...)` and gradients reach every child.
 
     Differentiable: every child's parameters.
     """
 
     children_: tuple
+    stack_threshold: int = eqx.field(static=True)
 
-    def __init__(self, *children):
+    def __init__(self, *children, stack_threshold=STACK_THRESHOLD):
         if not children:
             raise ValueError("`Union(...)` needs at least one child")
+        if not (isinstance(stack_threshold, int) and not isinstance(stack_threshold, bool)
+                and stack_threshold >= 1):
+            raise ValueError(f"`Union(stack_threshold={stack_threshold!r})`: expected an integer ≥ 1")
         self.children_ = tuple(check_sdf(c, f"Union(children[{i}])") for i, c in enumerate(children))
+        self.stack_threshold = stack_threshold
 
     def children(self):
         return self.children_
 
     def eval(self, p):
-        return union_eval(self.children_, p)
+        return union_eval(self.children_, p, self.stack_threshold)
 
     def lipschitz(self):
-        return union_lipschitz(self.children_)
+        return union_lipschitz(self.children_, self.stack_threshold)
 
 
 class Intersection(SDF):

@@ -22,7 +22,7 @@ selects, so the gradient flows to child j* alone (through the stack, to that chi
 own leaves), as through the loop's select-based min. Exact ties between children of
 different groups go to the first child in the list; a tie between a stacked child and
 a looped one can still be broken by an ulp of rounding (the two are compiled apart).
-The "fused" backend keeps the scan a loop over lanes (`lanes._scan_rolled`); Pallas
+The "fused" backend keeps the scan a loop over lanes (`lanes.control._scan_rolled`); Pallas
 unrolls it (`jaxrt.kernels.lanes`), so its programs still grow linearly with n.
 
 Material indices are data within a group: each primitive's static `material` becomes
@@ -34,7 +34,9 @@ import jax.numpy as jnp
 
 from .base import SDF, Primitive
 
-# Groups with at least this many members are stacked; smaller ones stay a loop.
+# Groups with at least this many members are stacked; smaller ones stay a loop (the
+# default of `Union(stack_threshold=...)`, a static field of each union; a constant
+# that nothing changes at run time).
 # From experiments/bench/scaling.py --only primitives (CPU, 32×32, spheres in two
 # groups): groups of 2 and 4 compile slower stacked than looped (6.1 vs 4.0 s, 7.1 vs
 # 5.2 s) and render slower (6.1 vs 1.8 ms, 3.8 vs 1.9 ms); groups of 8 compile faster
@@ -124,7 +126,7 @@ def stacked_lipschitz(stacked):
 def union_eval(children, p, threshold=None):
     """(min_i f_i(p), material of the first minimising child), as the loop
     `d = where(d_i < d, d_i, d)` over i = 1..n, with groups of ≥ `threshold` children
-    of one structure evaluated stacked (None: `STACK_THRESHOLD`, read at trace time).
+    of one structure evaluated stacked (None: `STACK_THRESHOLD`).
     Candidates of different groups are combined by (distance, child index), so that
     ties go to the first child, as in the loop."""
     threshold = STACK_THRESHOLD if threshold is None else threshold

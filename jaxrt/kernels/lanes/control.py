@@ -1,0 +1,325 @@
+"""Control flow on lanes: calls, `while`, `scan` and `cond`.
+
+A `while` whose condition varies between rays becomes one loop over the block that runs
+while any lane is active; inactive lanes keep their state (the semantics of `vmap` of a
+while loop). `cond` with a per-ray index evaluates every branch and selects lane-wise. A
+`scan` is unrolled, or with `roll_scans` (the "fused" backend) kept as one loop over
+lanes (`_scan_rolled`). Calls are inlined; on XLA their results are materialised once
+(`_barrier`). Inner jaxprs are evaluated by `ctx.eval_closed` (the interpreter)."""
+
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from .elementwise import _apply, _fold, _select
+from .jax_internals import ClosedJaxpr, Jaxpr, _closed, _scan_counts, dce_jaxpr, while_parts
+from .values import Unsupported, _broadcast, _convert, _is_const, _lane_shape, _obj
+
+def _call(eqn, ins, ctx):
+    closed = _closed(eqn)
+    if closed is None:
+        raise Unsupported(f"{eqn.primitive.name}: no inner jaxpr found")
+    outs = ctx.eval_closed(closed, ins)
+    if ctx.materialize and ctx.loop_depth == 0:
+        outs = _barrier(outs)
+    return outs
+
+
+def _materialise(x):
+    """`x`, computed once into memory: a fusion boundary for XLA on CPUs.
+
+    XLA:CPU removes `optimization_barrier`s before fusion (the `cse_barrier_expander`
+    pass of jax 0.10), so a barrier does not stop a producer from being fused, and so
+    recomputed, into each of its consumers. A reduction is never fused into its
+    consumers: x = max(x, identity) over a stacked axis of two stores x, exactly."""
+    dt = np.dtype(x.dtype)
+    if dt == np.dtype(bool):
+        return lax.reduce_or(jnp.stack([x, jnp.zeros_like(x)]), (0,))
+    low = -np.inf if np.issubdtype(dt, np.floating) else np.iinfo(dt).min
+    return lax.reduce_max(jnp.stack([x, jnp.full_like(x, low)]), (0,))
+
+
+def _barrier(objs):
+    """`_materialise` on the traced lanes of `objs`: XLA then computes them once,
+    instead of fusing (and so duplicating) their whole expression into every
+    consumer: a program scalarised into lanes has many consumers per value (each
+    component of each output), and XLA's CPU fusion would recompute shared work."""
+    flat, where = [], []
+    for k, o in enumerate(objs):
+        for idx in np.ndindex(o.shape):
+            x = o[idx]
+            if not _is_const(x):
+                flat.append(x)
+                where.append((k, idx))
+    if not flat:
+        return objs
+    flat = [_materialise(x) for x in flat]
+    objs = [o.copy() for o in objs]
+    for (k, idx), x in zip(where, flat):
+        objs[k][idx] = x
+    return objs
+
+
+def _while(eqn, ins, ctx):
+    cn, bn, cond_j, body_j = while_parts(eqn.params)
+    cconsts, bconsts, init = ins[:cn], ins[cn:cn + bn], ins[cn + bn:]
+    used = ctx.used_outputs or [True] * len(init)
+    cond_j, body_j, cconsts, bconsts, keep = _prune_loop(cond_j, body_j, cconsts, bconsts, used)
+    full_init = init
+    init = [x for x, k in zip(init, keep) if k]
+    avals = [v.aval for v, k in zip(eqn.outvars, keep) if k]
+    block = ctx.block
+    # loop state: every lane of every carried value as a [block] array (bools as int32
+    # unless ctx.bool_carries: a Triton kernel carries predicates, which saves a
+    # conversion each way per step)
+    shapes = [a.shape for a in avals]
+    dtypes = [a.dtype for a in avals]
+    sizes = [int(np.prod(s)) for s in shapes]
+
+    def store_dtype(dt):
+        return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
+
+    def pack(objs):
+        flat = []
+        for obj, dt in zip(objs, dtypes):
+            for x in obj.reshape(-1):
+                flat.append(_broadcast(_convert(x, store_dtype(dt), ctx), block, store_dtype(dt), ctx))
+        return flat
+
+    def unpack(flat):
+        objs, k = [], 0
+        for shape, dt, n in zip(shapes, dtypes, sizes):
+            obj = _obj(shape)
+            ravel = obj.reshape(-1)
+            for i in range(n):
+                x = flat[k + i]
+                ravel[i] = (x != 0) if dt == np.dtype(bool) and x.dtype != np.dtype(bool) else x
+            objs.append(obj)
+            k += n
+        return objs
+
+    def cond_lanes(objs):
+        # a batched while (vmap inside the one-ray program) has a predicate of shape S
+        # (the leading axes of every carry): it runs while any element is true
+        (c,) = ctx.eval_closed(cond_j, list(cconsts) + objs)
+        return _fold(list(c.reshape(-1)), "or", np.dtype(bool), ctx)
+
+    def step(state):
+        flat, active = state
+        objs = unpack(flat)
+        new = ctx.eval_closed(body_j, list(bconsts) + objs)
+        (c,) = ctx.eval_closed(cond_j, list(cconsts) + objs)
+        if c.shape != ():
+            # ... and only its elements whose predicate holds take a step (the body does
+            # not mask itself: XLA's lowering of a batched while selects per element)
+            new = [_select_elements(c, n, o) for n, o in zip(new, objs)]
+        new_flat = pack(new)
+        flat = [jnp.where(active, n, o) for n, o in zip(new_flat, flat)]
+        still = cond_lanes(unpack(flat))
+        active = active & _broadcast(still, block, bool, ctx)
+        return flat, active
+
+    def body_fn(state):
+        ctx.scopes.append({})
+        try:
+            for _ in range(ctx.unroll):
+                state = step(state)
+        finally:
+            ctx.scopes.pop()
+        return state
+
+    def cond_fn(state):
+        return ctx.any_lane(state[1])
+
+    flat0 = pack(init)
+    active0 = _broadcast(cond_lanes(unpack(flat0)), block, bool, ctx)
+    ctx.loop_depth += 1
+    try:
+        flat, _ = lax.while_loop(cond_fn, body_fn, (flat0, active0))
+    finally:
+        ctx.loop_depth -= 1
+    results = iter(unpack(flat))
+    # carries that nothing reads keep their initial value (placeholders)
+    return [next(results) if k else x for x, k in zip(full_init, keep)]
+
+
+def _select_elements(pred, new, old):
+    """new where pred else old, elementwise over pred's shape S, the leading axes of the
+    object arrays new and old (shape S + rest)."""
+    out = _obj(new.shape)
+    for i in np.ndindex(*new.shape):
+        out[i] = jnp.where(pred[i[:pred.ndim]], new[i], old[i])
+    return out
+
+
+def _scan(eqn, ins, ctx):
+    """`lax.scan`, unrolled: the body once per iteration on that iteration's slices of
+    the scanned inputs (static slices of object arrays: free). A lane program is
+    scalarised anyway, so a scan of length n is n copies of its body (as a Python loop
+    would be). With ctx.roll_scans (the "fused" XLA backend) a scan without stacked
+    outputs stays a loop (`_scan_rolled`): one copy of its body, whatever n (`Union`'s
+    stacked children, a material taken by index, the lights of one kind)."""
+    p = eqn.params
+    nc, nk = _scan_counts(p)
+    length = p["length"]
+    closed = p["jaxpr"]
+    if isinstance(closed, Jaxpr):
+        closed = ClosedJaxpr(closed, ())
+    consts, carry, xs = ins[:nc], list(ins[nc:nc + nk]), ins[nc + nk:]
+    if ctx.roll_scans and length > 1:
+        return _scan_rolled(eqn, closed, consts, carry, xs, length, p["reverse"], ctx)
+    order = range(length - 1, -1, -1) if p["reverse"] else range(length)
+    ys = [None] * length
+    for i in order:
+        outs = ctx.eval_closed(closed, [*consts, *carry, *[x[i, ...] for x in xs]])
+        carry, ys[i] = list(outs[:nk]), outs[nk:]
+    stacked = []
+    for k, v in enumerate(eqn.outvars[nk:]):
+        out = _obj(v.aval.shape)
+        for i in range(length):
+            out[i, ...] = ys[i][k]
+        stacked.append(out)
+    return carry + stacked
+
+
+def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
+    """A scan without stacked outputs as one `lax.scan` over lanes: each carried
+    element a [block] array (bools as int32 unless ctx.bool_carries), each scanned
+    element its `length` lanes stacked ([length] when they are shared by all rays,
+    else [length, *block]); the body is interpreted once."""
+    block = ctx.block
+    nk = len(carry)
+    avals = [v.aval for v in eqn.outvars[:nk]]
+    shapes = [a.shape for a in avals]
+    dtypes = [np.dtype(a.dtype) for a in avals]
+    y_avals = [v.aval for v in eqn.outvars[nk:]]
+    y_dtypes = [np.dtype(a.dtype) for a in y_avals]
+
+    def store_dtype(dt):
+        return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
+
+    def pack(objs):
+        return [_broadcast(_convert(x, store_dtype(dt), ctx), block, store_dtype(dt), ctx)
+                for obj, dt in zip(objs, dtypes) for x in obj.reshape(-1)]
+
+    def unpack(flat):
+        objs, k = [], 0
+        for shape, dt in zip(shapes, dtypes):
+            obj = _obj(shape)
+            ravel = obj.reshape(-1)
+            for i in range(ravel.size):
+                x = flat[k + i]
+                ravel[i] = (x != 0) if dt == np.dtype(bool) and x.dtype != np.dtype(bool) else x
+            objs.append(obj)
+            k += ravel.size
+        return objs
+
+    # scanned inputs: element idx of x over the iterations, as one array
+    xs_flat, xs_meta = [], []
+    for x, var in zip(xs, eqn.invars[len(eqn.invars) - len(xs):]):
+        dt = np.dtype(var.aval.dtype)
+        elem_shape = x.shape[1:]
+        for idx in np.ndindex(elem_shape):
+            lanes = [x[(i,) + idx] for i in range(length)]
+            source = [ctx.slice_of.get(id(v)) for v in lanes]
+            if all(_is_const(v) for v in lanes):
+                xs_flat.append(np.asarray([np.asarray(v, dt) for v in lanes], dt))
+            elif all(src is not None and src[0] is source[0][0] and src[1] == i
+                     for i, src in enumerate(source)) and source[0][0].dtype == dt:
+                # the stacked outputs of another rolled scan (a gradient's residuals)
+                xs_flat.append(source[0][0])
+            elif all(id(v) in ctx.param_pos for v in lanes) and \
+                    len({ctx.param_pos[id(v)][0] for v in lanes}) == 1:
+                # parameters of the program: one gather from their table (built once,
+                # outside every loop), not a stack of n lanes at every site
+                table = ctx.param_table[ctx.param_pos[id(lanes[0])][0]]
+                xs_flat.append(table[np.asarray([ctx.param_pos[id(v)][1] for v in lanes])].astype(dt))
+            elif all(_lane_shape(v) == () for v in lanes):
+                xs_flat.append(jnp.stack([jnp.asarray(v, dt) for v in lanes]))
+            else:
+                xs_flat.append(jnp.stack([_broadcast(v, block, dt, ctx) for v in lanes]))
+        xs_meta.append((elem_shape, dt))
+
+    def unpack_xs(flat):
+        objs, k = [], 0
+        for shape, _ in xs_meta:
+            obj = _obj(shape)
+            for idx in np.ndindex(shape):
+                obj[idx] = flat[k]
+                k += 1
+            objs.append(obj)
+        return objs
+
+    def body(flat, x_flat):
+        ctx.scopes.append({})
+        try:
+            outs = ctx.eval_closed(closed, [*consts, *unpack(flat), *unpack_xs(x_flat)])
+        finally:
+            ctx.scopes.pop()
+        ys = [_broadcast(_convert(x, dt, ctx), block, dt, ctx)
+              for obj, dt in zip(outs[nk:], y_dtypes) for x in obj.reshape(-1)]
+        return pack(outs[:nk]), ys
+
+    ctx.loop_depth += 1
+    try:
+        flat, ys_flat = lax.scan(body, pack(carry), xs_flat, length=length, reverse=reverse)
+    finally:
+        ctx.loop_depth -= 1
+    # stacked outputs: lane i of an element is ys[i] (remembered, so that a rolled scan
+    # that scans over them takes the array itself)
+    stacked, k = [], 0
+    for aval in y_avals:
+        obj = _obj(aval.shape)
+        for idx in np.ndindex(aval.shape[1:]):
+            arr = ys_flat[k]
+            k += 1
+            for i in range(length):
+                lane = arr[i]
+                ctx.slice_of[id(lane)] = (arr, i, lane)
+                obj[(i,) + idx] = lane
+        stacked.append(obj)
+    return unpack(flat) + stacked
+
+
+def _prune_loop(cond_j, body_j, cconsts, bconsts, used):
+    """Drop the carries of a while loop that neither its used results nor its condition
+    need (a march that also tracks a closest approach nobody reads, say). Returns the
+    pruned (cond, body, cond consts, body consts) and the mask of kept carries."""
+    n = len(used)
+    nc, nb = len(cconsts), len(bconsts)
+    if cond_j.consts or body_j.consts:
+        return cond_j, body_j, cconsts, bconsts, [True] * n
+    _, cond_in = dce_jaxpr(cond_j.jaxpr, [True])
+    keep = [bool(u) or bool(c) for u, c in zip(used, cond_in[nc:])]
+    while True:
+        _, body_in = dce_jaxpr(body_j.jaxpr, keep)
+        new = [k or bool(b) for k, b in zip(keep, body_in[nb:])]
+        if new == keep:
+            break
+        keep = new
+    if all(keep):
+        return cond_j, body_j, cconsts, bconsts, keep
+    cond_new, cond_used = dce_jaxpr(cond_j.jaxpr, [True], instantiate=[True] * nc + keep)
+    body_new, body_used = dce_jaxpr(body_j.jaxpr, keep, instantiate=[True] * nb + keep)
+    cond_new = ClosedJaxpr(cond_new, ())
+    body_new = ClosedJaxpr(body_new, ())
+    return cond_new, body_new, cconsts, bconsts, keep
+
+
+def _cond(eqn, ins, ctx):
+    index, ops = ins[0][()], ins[1:]
+    branches = eqn.params["branches"]
+    if _is_const(index):
+        return ctx.eval_closed(branches[int(index)], ops)
+    outs = [ctx.eval_closed(b, ops) for b in branches]
+    result = [o.copy() for o in outs[0]]
+    n = len(branches)
+    clamped = _apply("clamp", np.asarray(0, index.dtype)[()], index,
+                     np.asarray(n - 1, index.dtype)[()], dtype=index.dtype, ctx=ctx)
+    for k in range(1, n):
+        match = _apply("eq", clamped, np.asarray(k, index.dtype)[()], dtype=np.dtype(bool), ctx=ctx)
+        for r, o, var in zip(result, outs[k], eqn.outvars):
+            for idx in np.ndindex(r.shape):
+                if o[idx] is not r[idx]:
+                    r[idx] = _select(match, r[idx], o[idx], var.aval.dtype, ctx)
+    return result

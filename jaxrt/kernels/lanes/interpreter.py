@@ -1,0 +1,196 @@
+"""The interpreter: a jaxpr evaluated equation by equation on object arrays of lanes,
+each primitive by its rule (`_RULES`; elementwise primitives by `_elementwise`), and
+`eval_lanes`, the entry point. Also `program_size`, the lane operations of a program."""
+
+import collections
+import functools
+
+import jax.numpy as jnp
+import numpy as np
+
+from .control import _call, _cond, _scan, _while
+from .elementwise import _elementwise, _round
+from .gpu import _SUBSTITUTES, _fma, _fma_plan, _substitute, rewrite
+from .indexing import _dynamic_slice, _dynamic_update_slice, _gather, _scatter
+from .jax_internals import CALLS, ELEMENTWISE, ClosedJaxpr, Jaxpr, is_dropvar, is_literal
+from .structural import (_arg_reduce, _broadcast_in_dim, _concatenate, _dot_general,
+                         _expand_dims, _iota, _optimization_barrier, _pad, _reduce, _reshape,
+                         _rev, _slice, _split, _squeeze, _stack, _transpose, _unstack)
+from .values import _Ctx, _any_lane_default, _is_const, _lane_shape, _shape, lanes_of, Unsupported
+
+_RULES = {
+    "broadcast_in_dim": _broadcast_in_dim,
+    "reshape": _reshape,
+    "squeeze": _squeeze,
+    "expand_dims": _expand_dims,
+    "transpose": _transpose,
+    "rev": _rev,
+    "slice": _slice,
+    "concatenate": _concatenate,
+    "stack": _stack,
+    "unstack": _unstack,
+    "split": _split,
+    "pad": _pad,
+    "iota": _iota,
+    "reduce_sum": _reduce("add"),
+    "reduce_max": _reduce("max"),
+    "reduce_min": _reduce("min"),
+    "reduce_prod": _reduce("mul"),
+    "reduce_and": _reduce("and"),
+    "reduce_or": _reduce("or"),
+    "reduce_xor": _reduce("xor"),
+    "argmax": _arg_reduce("gt"),
+    "argmin": _arg_reduce("lt"),
+    "dot_general": _dot_general,
+    "dynamic_slice": _dynamic_slice,
+    "dynamic_update_slice": _dynamic_update_slice,
+    "gather": _gather,
+    "scatter": _scatter(False),
+    "scatter-add": _scatter(True),
+    "scatter_add": _scatter(True),
+    "while": _while,
+    "scan": _scan,
+    "cond": _cond,
+    "optimization_barrier": _optimization_barrier,
+    "round": _round,
+    **{name: _call for name in CALLS},
+}
+
+
+def _eval_closed(closed, args, ctx):
+    consts = [lanes_of(c) for c in closed.consts]
+    return _eval_jaxpr(closed.jaxpr, consts, args, ctx)
+
+
+def _eval_jaxpr(jaxpr, consts, args, ctx):
+    env = {}
+
+    def write(v, x):
+        env[v] = x
+
+    def read(v):
+        if is_literal(v):
+            return lanes_of(np.asarray(v.val, dtype=v.aval.dtype))
+        return env[v]
+
+    for v, x in zip(jaxpr.constvars, consts):
+        write(v, x)
+    if len(args) != len(jaxpr.invars):
+        raise Unsupported(f"arity mismatch: {len(args)} arguments for {len(jaxpr.invars)} inputs")
+    for v, x in zip(jaxpr.invars, args):
+        write(v, x)
+    # liveness: skip equations whose results are unused, and tell `while` which of its
+    # results are used (it then carries only what they and its condition need)
+    live = {v for v in jaxpr.outvars if not is_literal(v)}
+    used_eqns = []
+    for eqn in reversed(jaxpr.eqns):
+        used = [v in live for v in eqn.outvars]
+        if any(used) or eqn.effects:
+            live.update(v for v in eqn.invars if not is_literal(v))
+        used_eqns.append(used)
+    used_eqns.reverse()
+    products, fused = _fma_plan(jaxpr) if ctx.ptx and "fma" in ctx.ptx else (set(), {})
+    for eqn, used in zip(jaxpr.eqns, used_eqns):
+        if not (any(used) or eqn.effects):
+            continue
+        ctx.used_outputs = used
+        ins = [read(v) for v in eqn.invars]
+        name = eqn.primitive.name
+        if eqn.outvars[0] in products:  # a product that its one consumer fuses
+            write(eqn.outvars[0], ins)
+            continue
+        if id(eqn) in fused:
+            write(eqn.outvars[0], _fma(eqn, ins, fused[id(eqn)], ctx))
+            continue
+        if name in ctx.unsupported and name in _SUBSTITUTES:
+            outs = _substitute(eqn, ins, ctx)
+        elif name in ctx.unsupported:
+            raise Unsupported(f"this backend cannot run the primitive `{name}` of the one-ray "
+                              "program; use RenderSettings(backend=\"jax\")")
+        elif name in ELEMENTWISE:
+            outs = _elementwise(eqn, ins, ctx)
+        elif name in _RULES:
+            outs = _RULES[name](eqn, ins, ctx)
+        else:
+            raise Unsupported(
+                f"lanes cannot run the primitive `{name}` of the one-ray program; "
+                "use RenderSettings(backend=\"jax\")"
+            )
+        for v, o in zip(eqn.outvars, outs):
+            if not is_dropvar(v):
+                write(v, o)
+    return [read(v) for v in jaxpr.outvars]
+
+
+def program_size(jaxpr):
+    """Lane operations of a one-ray program: its equations (those of loop bodies and
+    calls once), each counted once per element of its result, as `eval_lanes`
+    scalarises them (a batch of 2^k rays in a ray tree: 2^k lanes per operation)."""
+    total = 0
+    for eqn in jaxpr.eqns:
+        shape = getattr(eqn.outvars[0].aval, "shape", ()) if eqn.outvars else ()
+        total += max(1, int(np.prod(shape)))
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (list, tuple)) else [p]:
+                if isinstance(sub, ClosedJaxpr):
+                    total += program_size(sub.jaxpr)
+                elif isinstance(sub, Jaxpr):
+                    total += program_size(sub)
+    return total
+
+
+def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
+               fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None,
+               bool_carries=False, roll_scans=False):
+    """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
+
+    Args:
+      closed: the jaxpr of the one-ray function (`jax.make_jaxpr`).
+      args: one object array per input (see `lanes_of`): elements are [block] arrays
+        (per ray), 0-d arrays (shared by all rays) or numpy scalars (constants).
+      block: the shape of a lane: the number of rays, or a tile shape (rows, columns).
+      any_lane: `pred[block] -> bool scalar`, the loop condition of a block (default
+        `jnp.any`; Triton kernels need a max of 0/1 floats).
+      unroll: march steps per test of the block's loop condition.
+      materialize: compute the results of the program's function calls (outside
+        loops) once, behind an optimization barrier (see `_barrier`; for XLA on CPUs).
+      fast_math: float32 sqrt and division by shared values in cheaper forms, within a
+        few ulps (`_fast_math`; for GPU kernels).
+      unsupported: primitive names the target cannot compile (raise `Unsupported`).
+      int_anchor: a traced integer scalar (a Pallas program id) from which constant
+        lanes are built (`_const_lane`), so that they fold to splats.
+      ptx: {name: function of [block] lanes} for "fma", "neg" and, with fast_math,
+        "sqrt", "rsqrt", "div", "exp", "log", "pow": the target's fused multiply-add (a
+        product used once by an add, a sub or a sum is fused into it), negation and
+        approximate functions (`_fast_math`).
+      uniforms: a `Uniforms`, recording or replaying the values shared by all rays.
+      bool_carries: loops carry boolean lanes as booleans (else as int32).
+      roll_scans: scans without stacked outputs stay loops (`_scan_rolled`: one copy
+        of the body), else they are unrolled.
+
+    Returns: one object array of lanes per output of the program.
+    """
+    ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize, fast_math)
+    ctx.unsupported = frozenset(unsupported)
+    ctx.int_anchor = int_anchor
+    ctx.ptx = ptx
+    ctx.uniforms = uniforms
+    ctx.bool_carries = bool_carries
+    ctx.roll_scans = roll_scans
+    ctx.rewrite = rewrite if (fast_math or ptx) else None
+    ctx.eval_closed = functools.partial(_eval_closed, ctx=ctx)
+    if roll_scans:  # a table of the 0-d parameter lanes, for rolled scans to gather from
+        by_dtype = collections.defaultdict(list)
+        for a in args:
+            for x in a.reshape(-1):
+                if not _is_const(x) and _lane_shape(x) == () and id(x) not in ctx.param_pos:
+                    dt = np.dtype(x.dtype)
+                    ctx.param_pos[id(x)] = (dt, len(by_dtype[dt]))
+                    by_dtype[dt].append(x)
+        ctx.param_table = {dt: jnp.stack(xs) for dt, xs in by_dtype.items()}
+    for a in args:  # a traced per-ray input: constants become lanes through it
+        for x in a.reshape(-1):
+            if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
+                    and jnp.issubdtype(x.dtype, jnp.floating):
+                ctx.anchor = x
+    return _eval_closed(closed, list(args), ctx)
