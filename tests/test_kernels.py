@@ -138,7 +138,12 @@ def test_pallas_kernel_lowers_for_cuda_with_ptx_forms(small_scene):
                                  kernel=jr.KernelOptions(interpret=False))
     dyn, static = eqx.partition(_cast((scene, camera), jnp.float32), eqx.is_array)
     f = jax.jit(lambda d: _render.__wrapped__(*eqx.combine(d, static), settings))
-    text = f.trace(dyn).lower(lowering_platforms=("cuda",)).as_text()
+    try:
+        text = f.trace(dyn).lower(lowering_platforms=("cuda",)).as_text()
+    except Exception as e:  # jax 0.11's Triton lowering asks the GPU for its compute capability
+        if "No supported GPU devices" not in str(e):
+            raise
+        pytest.skip(f"this JAX cannot lower Pallas for CUDA without a GPU ({jax.__version__})")
     assert "jaxrt_render" in text
     for instruction in ("fma.rn.f32", "sqrt.approx.ftz.f32", "neg.f32"):
         assert instruction in text, instruction
