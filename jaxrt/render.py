@@ -87,10 +87,11 @@ def _vmapped(kernel, params, samples, settings):
 def _recorded(kernel, params, samples, settings, grid, offset):
     """The fast backends ("fused", "pallas", "auto"), differentiable by record and replay.
 
-    The image is the per-sample program run lane-wise (`_fused`) with its marches
-    recorded (`jaxrt.march.tape`: hit t and flags, penumbra minima, near misses, as
-    extra per-sample outputs). Its derivative (a custom JVP, so forward and reverse
-    mode both work) is that of the *replay*: the same program vmapped over every sample
+    A plain render runs the per-sample program lane-wise (`_fused`) and writes no tape.
+    Its derivative (a custom JVP, so forward and reverse mode both work) runs the same
+    kernel with its marches recorded (`jaxrt.march.tape`: hit t and flags, penumbra
+    minima, near misses, as extra per-sample outputs; its image is the primal output)
+    and differentiates the *replay*: the same program vmapped over every sample
     of the block at once, each march replaced by its record, so no loop is left; the
     Newton steps at the recorded roots give the hit points their implicit gradients,
     the penumbrae and coverage are evaluated at their recorded minima. The replay
@@ -103,16 +104,14 @@ def _recorded(kernel, params, samples, settings, grid, offset):
     """
     dyn, static = eqx.partition(params, eqx.is_array)
 
-    def record(dyn_, s):
-        return _record(kernel, eqx.combine(dyn_, static), s, settings, grid, offset)
-
     @jax.custom_jvp
-    def image(dyn_, s):
-        return record(dyn_, s)[0]["image"]
+    def image(dyn_, s):  # a plain render: the kernel alone, no tape written
+        return _fused(*eqx.combine(dyn_, static), s, settings, kernel, grid, offset)
 
     @image.defjvp
-    def image_jvp(primals, tangents):
-        out, kinds = record(*primals)
+    def image_jvp(primals, tangents):  # a derivative: the recording kernel, then the replay
+        out, kinds = _record(kernel, eqx.combine(primals[0], static), primals[1], settings,
+                             grid, offset)
         entries = jax.lax.stop_gradient(out["tape"])
         replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds)  # noqa: E731
         _, tangent = jax.jvp(replay, primals, tangents)

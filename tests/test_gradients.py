@@ -685,6 +685,49 @@ def test_replay_image_equals_the_record(variant):
         assert np.max(np.abs(a - b)) <= tol * max(1.0, np.max(np.abs(a))), name
 
 
+def _lane_call_outputs(jaxpr):
+    """The number of outputs of each outermost `custom_vjp_call` in `jaxpr` (the lane
+    kernel of `jaxrt.kernels.fused.map_samples`), nested jaxprs included."""
+    counts = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name.startswith("custom_vjp_call"):
+            counts.append(len(eqn.outvars))
+            continue
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (list, tuple)) else [value]:
+                if hasattr(sub, "eqns"):
+                    counts += _lane_call_outputs(sub)
+                elif hasattr(sub, "jaxpr") and hasattr(sub.jaxpr, "eqns"):
+                    counts += _lane_call_outputs(sub.jaxpr)
+    return counts
+
+
+def test_plain_render_writes_no_tape_and_equals_the_recorded_image():
+    """A render with no derivative runs the lane kernel alone (its outputs are the image
+    and AOVs, no tape); a derivative runs the recording kernel, whose image is the plain
+    kernel's to rounding (float64; mirror, glass, soft shadows, a height field)."""
+    from jaxrt.render import replay_image
+
+    scene, camera, settings = _replay_scene()
+    settings = settings.replace(backend="fused")
+    n_outputs = 1 + len(settings.aovs)
+    loss = lambda p: jnp.sum(jr.render(*p, settings).rgb)  # noqa: E731
+    plain = jax.make_jaxpr(loss)((scene, camera)).jaxpr
+    assert _lane_call_outputs(plain) == [n_outputs]
+    for derivative in (eqx.filter_value_and_grad(loss),
+                       lambda p: eqx.filter_jvp(loss, (p,), (p,))):
+        calls = _lane_call_outputs(jax.make_jaxpr(derivative)((scene, camera)).jaxpr)
+        assert len(calls) == 1 and calls[0] > n_outputs  # the image and its tape
+
+    image = jr.render(scene, camera, settings)
+    record, _ = replay_image(scene, camera, settings)
+    assert float(np.ptp(np.asarray(image.rgb))) > 0.1
+    for name in record:
+        a = np.asarray(getattr(image, name))
+        b = np.asarray(record[name]).reshape(a.shape)
+        assert np.max(np.abs(a - b)) <= 1e-12 * max(1.0, np.max(np.abs(b))), name
+
+
 @pytest.mark.slow
 def test_replay_gradients_equal_the_reference_path_on_every_march():
     """Mirror, glass, soft shadows (now differentiable), a height field and its shadows:
