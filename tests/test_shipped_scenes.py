@@ -84,3 +84,100 @@ def test_no_coincident_faces_in_shipped_scenes(path):
         if kind == "box" and scene.materials[material].has_transmission:
             for y in floors:
                 assert min(abs(lo[1] - y), abs(hi[1] - y)) > 100 * settings.hit_epsilon, (path, lo, hi, y)
+
+
+# ---------------------------------------------------------------- artefact counts
+
+
+def test_the_counters_find_a_speckle_and_a_hole_and_nothing_else():
+    """`jaxrt.artefacts`: one dark pixel inside a lit region is a speckle, one missed
+    pixel inside a hit region is a hole when the reference hits there (a real gap, one
+    the reference misses too, is not); edges of the region and dark regions are neither."""
+    from jaxrt import artefacts
+
+    h, w = 12, 16
+    rgb = np.full((h, w, 3), 0.6)
+    rgb[:, 8:] = 0.02  # a dark (shadowed) half: not speckles
+    depth = np.full((h, w), 5.0)
+    depth[:, :2] = 100.0  # background at the left: its edge is no hole
+    rgb[5, 4] = 0.01  # a speckle
+    depth[3, 5] = 100.0  # a hole
+    depth[8, 5] = 100.0  # a real gap (the reference misses it too)
+    hit = artefacts.hit_mask(depth, 100.0)
+    reference = depth.copy()
+    reference[3, 5] = 5.0
+    assert np.argwhere(artefacts.speckle_pixels(rgb, hit)).tolist() == [[5, 4]]
+    assert np.argwhere(artefacts.hole_pixels(hit, artefacts.hit_mask(reference, 100.0))).tolist() == [[3, 5]]
+    rgb[2, 2] = np.nan
+    assert artefacts.nan_pixels(rgb).sum() == 1
+
+
+@pytest.mark.parametrize("shadows", ["hard", "soft"])
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_shadow_rays_leaving_a_lit_sphere_at_grazing_angles_are_not_self_occluded(shadows, scale):
+    """A shadow ray from a point of a convex surface towards a light above its tangent
+    plane (cos θ from 0.002 to 1) leaves the surface and never comes back: it is fully
+    visible (soft: the penumbra term k·f/t of the sphere alone stays ≥ 1 only where
+    k·(offset/t + sin θ) ≥ 1, so the soft test asks only V > 0 at grazing angles and V = 1
+    from cos θ ≥ 0.1 (k = 10)). Shadow acne is a V = 0 there. float32, the integrator's
+    spawn origin."""
+    from jaxrt.integrator import spawn_offset
+    from jaxrt.lights import shadow_ray
+    from jaxrt.render import _cast
+
+    dtype = jnp.float32
+    settings = jr.RenderSettings(shadows=shadows, penumbra=10.0, hit_epsilon=1e-4 * scale,
+                                 max_distance=60.0 * scale, shadow_steps=64, dtype="float32")
+    sphere = _cast(jr.sdf.Translate(jr.sdf.Sphere(radius=0.7 * scale), offset=(1.0 * scale, 0.3 * scale, 1.5 * scale)),
+                   jnp.dtype(dtype))
+    centre = np.array([1.0, 0.3, 1.5]) * scale
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(256, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    # wi: cos θ = n·wi in a log range, in a random tangent direction.
+    cos = np.geomspace(2e-3, 1.0, 256)
+    tangent = np.cross(n, rng.normal(size=(256, 3)))
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    wi = cos[:, None] * n + np.sqrt(1.0 - cos[:, None] ** 2) * tangent
+    p = centre + 0.7 * scale * n
+
+    def one(p, n, wi):
+        origin = p + spawn_offset(p, settings) * n
+        return shadow_ray(sphere, origin, wi, jnp.asarray(20.0 * scale, dtype), settings)
+
+    v = np.asarray(jax.jit(jax.vmap(one))(*(jnp.asarray(a, dtype) for a in (p, n, wi))))
+    if shadows == "hard":
+        assert np.all(v == 1.0), cos[v < 1.0]
+    else:
+        assert np.all(v > 0.0), cos[v <= 0.0]
+        assert np.all(v[cos >= 0.1] == 1.0), cos[(cos >= 0.1) & (v < 1.0)]
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e3])
+def test_height_field_in_large_units_with_a_tiny_epsilon_keeps_its_hits(scale):
+    """A sine height field scaled by 10³ (amplitude, wavelength, camera; min_step by s)
+    with hit_epsilon = 1e-9 · s (below float32's precision) hits every ray that the
+    same field hits at scale 1, at the same relative depth."""
+    from jaxrt.heightfield import HeightField, SineHeight
+    from jaxrt.render import _cast
+
+    dtype = jnp.float32
+    field = HeightField(SineHeight(amplitude=0.2 * scale, frequency=(1.5 / scale, 1.0 / scale)),
+                        min_step=0.01 * scale)
+    field = _cast(field, jnp.dtype(dtype))
+    settings = jr.RenderSettings(hit_epsilon=1e-9 * scale, max_distance=100.0 * scale, dtype="float32")
+    u = np.linspace(-0.6, 0.6, 24)
+    x, y = np.meshgrid(u, u - 0.5)
+    d = np.stack([x.ravel(), y.ravel(), -np.ones(x.size)], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.tile([0.0, 2.0 * scale, 4.0 * scale], (x.size, 1))
+    hits = jax.jit(jax.vmap(lambda o, d: field.intersect(o, d, settings)))(jnp.asarray(o, dtype), jnp.asarray(d, dtype))
+    hit, t = np.asarray(hits.hit), np.asarray(hits.t) / scale
+    down = d[:, 1] < -0.3  # steep enough to meet the field well within max_distance
+    assert hit[down].all()
+    # The reference at scale 1 in float64 (the same field, unscaled).
+    field64 = _cast(HeightField(SineHeight(amplitude=0.2, frequency=(1.5, 1.0)), min_step=0.01), jnp.dtype(jnp.float64))
+    ref = jax.jit(jax.vmap(lambda o, d: field64.intersect(o, d, jr.RenderSettings(max_distance=100.0))))(
+        jnp.asarray(o / scale), jnp.asarray(d))
+    assert np.array_equal(hit, np.asarray(ref.hit))
+    np.testing.assert_allclose(t[hit], np.asarray(ref.t)[hit], rtol=1e-4)
