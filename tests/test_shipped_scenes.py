@@ -228,3 +228,28 @@ def test_shipped_scenes_render_without_nans_speckles_or_holes(path):
     black-speckle and 0 outline-hole pixels by `jaxrt.artefacts`' counts (96×54)."""
     c = shipped_counts(path)
     assert (c["nan"], c["speckles"], c["holes"]) == (0, 0, 0), c
+
+
+def test_a_cone_lit_from_the_eye_has_no_black_pixels():
+    """Every visible point of a cone lit from the camera (a directional light along the
+    view, hard shadows, float32) faces the light and sees it: no hit pixel is black. The
+    exact cone's gradient at |f| within rounding of 0 can point inward; when the integrator
+    took the hit's side from that sign, such hits were shaded as seen from inside the
+    solid (shadow rays started inside it): black speckles (the showcase's orange cone)."""
+    from jaxrt import artefacts
+
+    eye = np.array([0.0, 5.2, 10.5])
+    scene = jr.Scene(surface=jr.sdf.Translate(jr.sdf.Cone(radius=0.7, height=1.5), offset=(1.0, 0.0, 1.5)),
+                     materials=[jr.bsdf.Lambert(albedo=(0.8, 0.4, 0.1))],
+                     lights=[jr.DirectionalLight(direction=tuple(eye - [1.0, 0.75, 1.5]))],
+                     background=(0.3, 0.36, 0.45))
+    camera = jr.PerspectiveCamera(eye=tuple(eye), target=(1.0, 0.75, 1.5), fov=12.0, width=96, height=96)
+    settings = jr.RenderSettings(shadows="hard", max_steps=160, backend="jax", dtype="float32",
+                                 max_depth=0, aovs=("depth", "normal"))
+    image = jr.render(scene, camera, settings)
+    hit = artefacts.hit_mask(image.depth, settings.max_distance)
+    view = np.asarray(image.normal) @ (np.asarray(scene.lights[0].direction) / np.linalg.norm(scene.lights[0].direction))
+    facing = hit & (view > 0.05)
+    assert facing.sum() > 2000
+    lum = artefacts.luminance(image.rgb)
+    assert np.all(lum[facing] > 0.0), np.argwhere(facing & (lum <= 0.0))
