@@ -7,6 +7,18 @@ went down through the water travelled on into the solid floor: blocky black and
 background-coloured cells along the bottom of the box. The box now stands 0.01 above the
 floor (more than the spawn offset, 4·ε, and far more than ε); the closed form below checks
 the box's optics, and `test_no_coincident_faces_in_shipped_scenes` the scene files.
+
+Artefact counts (`jaxrt.artefacts`, issue 14): NaN pixels, black speckles (a hit pixel
+darker than 0.2× the median of its hit 8-neighbours) and outline holes (a background
+pixel with ≥ 3 hit 4-neighbours where a render with 8× the step budget hits). The
+showcase's ~24 black speckles on the orange cone (480×270) were hits shaded as seen from
+inside: the integrator took the side a ray arrives from from the sign of the computed
+normal, and the exact cone's gradient at |f| within rounding of 0 can point inward; the
+shadow rays then started inside the cone. It now takes it from where the ray started
+(`SceneHit.inside`). The outline holes (camera rays that spent their budget crawling past
+a silhouette) were gone before this: the secant finish of `march.sphere` and the floor's
+analytic intersection resolve them (0 holes, 0 hit/miss disagreements with 8× steps at
+480×270).
 """
 
 from pathlib import Path

@@ -26,15 +26,16 @@ def make(settings):
         off = spawn_offset(p, settings, hit_epsilon(settings, hit.t, cone))
         start = spawn_origin(scene, hit.surface, p, n, off, jnp.where(jnp.dot(hit.normal, d) <= 0, 1.0, -1.0), steps=settings.spawn_steps)
         vis = []
-        for light in scene.lights:
+        for light in (scene.lights if settings.shadows != "none" else []):
             wi, dist, _ = light.illuminate(p)
             lit = hit.hit & (jnp.dot(wi, n) > 0)
             v = visibility(scene, start, wi, jnp.where(lit, dist, 0.0), settings)
             vis.append(jnp.where(lit, v, -1.0))
-        return hit.t, hit.hit, hit.steps, jnp.stack(vis), hit.material
+        return hit.t, hit.hit, hit.steps, jnp.stack(vis) if vis else jnp.zeros(1), hit.material
     return jax.jit(jax.vmap(one))
 
 t0 = time.time()
+settings = settings.replace(shadows=sys.argv[4]) if len(sys.argv) > 4 else settings
 t, hit, steps, vis, mat = map(np.asarray, make(settings)(px, py))
 t1 = time.time()
 print("compile+run", t1 - t0, flush=True)
