@@ -181,6 +181,9 @@ class SceneHit(NamedTuple):
               (−∂h/∂x, 1, −∂h/∂z) normal, pointing up).
     material  index of the material hit (int32).
     surface   which surface was hit (int32): 0 the SDF, k the height field k − 1.
+    inside    the ray started inside the surface it hit (below the height field): it
+              leaves the solid there. A ray that started outside arrives from outside,
+              whatever the sign of the computed normal (`shade_ray`).
     """
 
     t: jnp.ndarray
@@ -189,6 +192,7 @@ class SceneHit(NamedTuple):
     normal: jnp.ndarray
     material: jnp.ndarray
     surface: jnp.ndarray
+    inside: jnp.ndarray = None
 
 
 def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
@@ -197,8 +201,8 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     surface = scene.surface
     planes = analytic_planes(surface) if getattr(settings, "analytic_planes", False) else []
     hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max,
-                       fields=("steps", "inside") if planes else ("steps",))
-    t, found, steps = hit.t, hit.hit, hit.steps
+                       fields=("steps", "inside"))
+    t, found, steps, inside = hit.t, hit.hit, hit.steps, hit.inside
     if planes:
         t, found = _meet_planes(planes, origin, direction, t, found, hit.inside, settings, t_max)
     p = origin + t * direction
@@ -212,10 +216,11 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
         normal = jnp.where(nearer, field.normal(origin + h.t * direction), normal)
         material = jnp.where(nearer, field.material, material)
         which = jnp.where(nearer, k + 1, which)
+        inside = jnp.where(nearer, h.inside, inside)
         found = found | h.hit
         steps = steps + h.steps
     material = jnp.clip(material, 0, len(scene.materials) - 1)
-    return SceneHit(t, found, steps, normal, material, which)
+    return SceneHit(t, found, steps, normal, material, which, inside)
 
 
 #: Analytic planes are met up to this many max_distances away: the floor then reaches
@@ -373,9 +378,15 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
     hit = intersect_scene(scene, o, d, settings, cone=cone, t_max=t_max)
     found = hit.hit & ray.alive
     p = o + hit.t * d
-    n_out, material = hit.normal, hit.material
-    entering = dot(n_out, d) <= 0.0  # the ray arrives from outside
-    n = jnp.where(entering, n_out, -n_out)  # faces the viewer
+    material = hit.material
+    # Which side the ray arrives from is known from where it started (outside the solid:
+    # it enters), not from the sign of the computed normal: at |f| within rounding of 0
+    # the gradient of an SDF of the form sign(s)·sqrt(d) (the exact cone, say) can point
+    # either way, and a normal taken as inward made the hit "exiting": its shadow rays
+    # started inside the solid and the pixel went black (the showcase cone's speckles).
+    n = jnp.where(dot(hit.normal, d) <= 0.0, hit.normal, -hit.normal)  # faces the viewer
+    entering = ~hit.inside  # the ray arrives from outside
+    n_out = jnp.where(entering, n, -n)  # outward
     wo = -d
 
     offset = spawn_offset(p, settings, hit_epsilon(settings, hit.t, cone))

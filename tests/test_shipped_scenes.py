@@ -7,7 +7,21 @@ went down through the water travelled on into the solid floor: blocky black and
 background-coloured cells along the bottom of the box. The box now stands 0.01 above the
 floor (more than the spawn offset, 4·ε, and far more than ε); the closed form below checks
 the box's optics, and `test_no_coincident_faces_in_shipped_scenes` the scene files.
+
+Artefact counts (`jaxrt.artefacts`, issue 14): NaN pixels, black speckles (a hit pixel
+darker than 0.2× the darkest of its hit 8-neighbours) and outline holes (a background
+pixel with ≥ 3 hit 4-neighbours where a render with 8× the step budget hits). The
+showcase's ~24 black speckles on the orange cone (480×270) were hits shaded as seen from
+inside: the integrator took the side a ray arrives from from the sign of the computed
+normal, and the exact cone's gradient at |f| within rounding of 0 can point inward; the
+shadow rays then started inside the cone. It now takes it from where the ray started
+(`SceneHit.inside`). The outline holes (camera rays that spent their budget crawling past
+a silhouette) were gone before this: the secant finish of `march.sphere` and the floor's
+analytic intersection resolve them (0 holes, 0 hit/miss disagreements with 8× steps at
+480×270).
 """
+
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -84,3 +98,173 @@ def test_no_coincident_faces_in_shipped_scenes(path):
         if kind == "box" and scene.materials[material].has_transmission:
             for y in floors:
                 assert min(abs(lo[1] - y), abs(hi[1] - y)) > 100 * settings.hit_epsilon, (path, lo, hi, y)
+
+
+# ---------------------------------------------------------------- artefact counts
+
+
+def test_the_counters_find_a_speckle_and_a_hole_and_nothing_else():
+    """`jaxrt.artefacts`: one dark pixel inside a lit region is a speckle, one missed
+    pixel inside a hit region is a hole when the reference hits there (a real gap, one
+    the reference misses too, is not); edges of the region and dark regions are neither."""
+    from jaxrt import artefacts
+
+    h, w = 12, 16
+    rgb = np.full((h, w, 3), 0.6)
+    rgb[:, 8:] = 0.02  # a dark (shadowed) half: not speckles
+    depth = np.full((h, w), 5.0)
+    depth[:, :2] = 100.0  # background at the left: its edge is no hole
+    rgb[5, 4] = 0.01  # a speckle
+    depth[3, 5] = 100.0  # a hole
+    depth[8, 5] = 100.0  # a real gap (the reference misses it too)
+    hit = artefacts.hit_mask(depth, 100.0)
+    reference = depth.copy()
+    reference[3, 5] = 5.0
+    assert np.argwhere(artefacts.speckle_pixels(rgb, hit)).tolist() == [[5, 4]]
+    assert np.argwhere(artefacts.hole_pixels(hit, artefacts.hit_mask(reference, 100.0))).tolist() == [[3, 5]]
+    rgb[2, 2] = np.nan
+    assert artefacts.nan_pixels(rgb).sum() == 1
+
+
+def _convex_points(shape, scale, rng, count):
+    """(sdf, points, outward unit normals) on a sphere or on the side of a cone (the
+    showcase's orange cone: radius 0.7, height 1.5), placed as in the showcase."""
+    centre = np.array([1.0, 0.0, 1.5])
+    phi = rng.uniform(0.0, 2.0 * np.pi, count)
+    if shape == "sphere":
+        n = rng.normal(size=(count, 3))
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        centre = centre + [0.0, 0.8, 0.0]
+        return jr.sdf.Sphere(radius=0.7 * scale), centre, 0.7 * n, n
+    r, h = 0.7, 1.5
+    y = rng.uniform(0.05, 0.95, count) * h
+    rho = r * (1.0 - y / h)
+    p = np.stack([rho * np.cos(phi), y, rho * np.sin(phi)], 1)
+    n = np.stack([h * np.cos(phi), np.full(count, r), h * np.sin(phi)], 1)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return jr.sdf.Cone(radius=r * scale, height=h * scale), centre, p, n
+
+
+@pytest.mark.parametrize("shape", ["sphere", "cone"])
+@pytest.mark.parametrize("shadows", ["hard", "soft"])
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_shadow_rays_leaving_a_lit_convex_surface_at_grazing_angles_are_not_self_occluded(
+        shape, shadows, scale):
+    """A shadow ray from a point of a convex surface towards a light above its tangent
+    plane (cos θ from 0.002 to 1) leaves the surface and never comes back: it is not
+    blocked (soft: the penumbra term k·f/t of the shape alone is ≥ 1 only where
+    k·(offset/t + sin θ) ≥ 1, so the soft test asks V > 0 at grazing angles and V = 1
+    from cos θ ≥ 0.1 (k = 10)). Shadow acne is a V = 0 there. float32, the
+    integrator's spawn offset."""
+    from jaxrt.integrator import spawn_offset
+    from jaxrt.lights import shadow_ray
+    from jaxrt.render import _cast
+
+    dtype = jnp.float32
+    count = 512
+    settings = jr.RenderSettings(shadows=shadows, penumbra=10.0, hit_epsilon=1e-4 * scale,
+                                 max_distance=60.0 * scale, shadow_steps=64, dtype="float32")
+    rng = np.random.default_rng(3)
+    shape_sdf, centre, local, n = _convex_points(shape, scale, rng, count)
+    surface = _cast(jr.sdf.Translate(shape_sdf, offset=tuple(centre * scale)), jnp.dtype(dtype))
+    p = (centre + local) * scale
+    # wi: cos θ = n·wi from 0.002 to 1, in a random tangent direction.
+    cos = np.geomspace(2e-3, 1.0, count)
+    tangent = np.cross(n, rng.normal(size=(count, 3)))
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    wi = cos[:, None] * n + np.sqrt(1.0 - cos[:, None] ** 2) * tangent
+
+    def one(p, n, wi):
+        origin = p + spawn_offset(p, settings) * n
+        return shadow_ray(surface, origin, wi, jnp.asarray(20.0 * scale, dtype), settings)
+
+    v = np.asarray(jax.jit(jax.vmap(one))(*(jnp.asarray(a, dtype) for a in (p, n, wi))))
+    if shadows == "hard":
+        assert np.all(v == 1.0), cos[v < 1.0]
+    else:
+        assert np.all(v > 0.0), cos[v <= 0.0]
+        assert np.all(v[cos >= 0.1] == 1.0), cos[(cos >= 0.1) & (v < 1.0)]
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e3])
+def test_height_field_in_large_units_with_a_tiny_epsilon_keeps_its_hits(scale):
+    """A sine height field scaled by 10³ (amplitude, wavelength, camera; min_step by s)
+    with hit_epsilon = 1e-9 · s (below float32's precision) hits every ray that the
+    same field hits at scale 1, at the same relative depth."""
+    from jaxrt.heightfield import HeightField, SineHeight
+    from jaxrt.render import _cast
+
+    dtype = jnp.float32
+    field = HeightField(SineHeight(amplitude=0.2 * scale, frequency=(1.5 / scale, 1.0 / scale)),
+                        min_step=0.01 * scale)
+    field = _cast(field, jnp.dtype(dtype))
+    settings = jr.RenderSettings(hit_epsilon=1e-9 * scale, max_distance=100.0 * scale, dtype="float32")
+    u = np.linspace(-0.6, 0.6, 24)
+    x, y = np.meshgrid(u, u - 0.5)
+    d = np.stack([x.ravel(), y.ravel(), -np.ones(x.size)], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.tile([0.0, 2.0 * scale, 4.0 * scale], (x.size, 1))
+    hits = jax.jit(jax.vmap(lambda o, d: field.intersect(o, d, settings)))(jnp.asarray(o, dtype), jnp.asarray(d, dtype))
+    hit, t = np.asarray(hits.hit), np.asarray(hits.t) / scale
+    down = d[:, 1] < -0.3  # steep enough to meet the field well within max_distance
+    assert hit[down].all()
+    # The reference at scale 1 in float64 (the same field, unscaled).
+    field64 = _cast(HeightField(SineHeight(amplitude=0.2, frequency=(1.5, 1.0)), min_step=0.01), jnp.dtype(jnp.float64))
+    ref = jax.jit(jax.vmap(lambda o, d: field64.intersect(o, d, jr.RenderSettings(max_distance=100.0))))(
+        jnp.asarray(o / scale), jnp.asarray(d))
+    assert np.array_equal(hit, np.asarray(ref.hit))
+    np.testing.assert_allclose(t[hit], np.asarray(ref.t)[hit], rtol=1e-4)
+
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ["jaxrt/data/showcase.toml"] + sorted(
+    str(p.relative_to(ROOT)) for p in (ROOT / "configs" / "scenes").glob("*.toml"))
+
+
+def shipped_counts(path, width=96, height=54, reference_steps=8):
+    """`jaxrt.artefacts.counts` of the scene file at a small size on backend jax, the
+    holes judged against a render with `reference_steps`× the step budget."""
+    from jaxrt import artefacts
+
+    scene, camera, settings = config.load(ROOT / path, width=width, height=height, spp=1)
+    settings = settings.replace(backend="jax", aovs=("depth", "steps"))
+    image = jr.render(scene, camera, settings)
+    reference = jr.render(scene, camera, settings.replace(max_steps=settings.max_steps * reference_steps))
+    return artefacts.counts(image, settings.max_distance, reference)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="issue 14, open: the showcase at 192×108 still has 3 "
+                   "speckles (after the cone fix; 0 holes, 0 NaN); configs/scenes not yet counted "
+                   "(the showcase's jax compile took 11 min on the 2-core machine)")
+@pytest.mark.parametrize("path", SHIPPED)
+def test_shipped_scenes_render_without_nans_speckles_or_holes(path):
+    """Issue 14: the showcase and every scene in configs/scenes render with 0 NaN, 0
+    black-speckle and 0 outline-hole pixels by `jaxrt.artefacts`' counts (96×54)."""
+    c = shipped_counts(path)
+    assert (c["nan"], c["speckles"], c["holes"]) == (0, 0, 0), c
+
+
+def test_a_cone_lit_from_the_eye_has_no_black_pixels():
+    """Every visible point of a cone lit from the camera (a directional light along the
+    view, hard shadows, float32) faces the light and sees it: no hit pixel is black. The
+    exact cone's gradient at |f| within rounding of 0 can point inward; when the integrator
+    took the hit's side from that sign, such hits were shaded as seen from inside the
+    solid (shadow rays started inside it): black speckles (the showcase's orange cone)."""
+    from jaxrt import artefacts
+
+    eye = np.array([0.0, 5.2, 10.5])
+    scene = jr.Scene(surface=jr.sdf.Translate(jr.sdf.Cone(radius=0.7, height=1.5), offset=(1.0, 0.0, 1.5)),
+                     materials=[jr.bsdf.Lambert(albedo=(0.8, 0.4, 0.1))],
+                     lights=[jr.DirectionalLight(direction=tuple(eye - [1.0, 0.75, 1.5]))],
+                     background=(0.3, 0.36, 0.45))
+    camera = jr.PerspectiveCamera(eye=tuple(eye), target=(1.0, 0.75, 1.5), fov=12.0, width=96, height=96)
+    settings = jr.RenderSettings(shadows="hard", max_steps=160, backend="jax", dtype="float32",
+                                 max_depth=0, aovs=("depth", "normal"))
+    image = jr.render(scene, camera, settings)
+    hit = artefacts.hit_mask(image.depth, settings.max_distance)
+    view = np.asarray(image.normal) @ (np.asarray(scene.lights[0].direction) / np.linalg.norm(scene.lights[0].direction))
+    facing = hit & (view > 0.05)
+    assert facing.sum() > 2000
+    lum = artefacts.luminance(image.rgb)
+    assert np.all(lum[facing] > 0.0), np.argwhere(facing & (lum <= 0.0))

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from ..vecmath import safe_div
+from .sphere import rounding_floor
 
 
 def march(field, origin, direction, cone, t_max):
@@ -49,7 +50,10 @@ def march(field, origin, direction, cone, t_max):
 
     def body(s):
         t, g, _, _, steps, _, _, best, best_t, best_g = s
-        dt = jnp.maximum(field.min_step, field.rel_step * t)
+        # Never below the rounding floor at the sample: a step smaller than a few ulps
+        # of max|p| would not move the sample (min_step = 1e-6 at scale 10³ in float32).
+        dt = jnp.maximum(jnp.maximum(field.min_step, field.rel_step * t),
+                         rounding_floor(origin + t * direction))
         t_next = jnp.minimum(t + dt, t_max)
         p = origin + t_next * direction
         g_next = field.gap(p)
@@ -64,7 +68,15 @@ def march(field, origin, direction, cone, t_max):
                 jnp.where(better, g_next, best_g))
 
     t1, g1, t_prev, g_prev, steps, _, hit, _, best_t, best_g = jax.lax.while_loop(cond, body, init)
-    exhausted = (steps >= field.max_steps) & ~hit & (t1 < t_max) & ~never
+    ran_out = (steps >= field.max_steps) & ~hit & (t1 < t_max) & ~never
+    # A ray that ran out of budget within the rounding floor of the surface (its gap
+    # there is below what the float resolves at the sample) is a hit at its last sample.
+    p1 = origin + t1 * direction
+    within = ran_out & (sign * g1 * scale < rounding_floor(p1))
+    hit = hit | within
+    exhausted = ran_out & ~within
+    g_prev = jnp.where(within, g1, g_prev)
+    t_prev = jnp.where(within, t1, t_prev)
     t_lo, t_hi = t_prev, t1
     if field.interpolate:
         # Linear interpolation between the last two samples (notes, optimisation 1).

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from ..trace import sphere_trace
 from ..vecmath import dot, normalize, safe_div, stop_gradient
 from .search import repeat as _repeat
-from .sphere import SphereTracing
+from .sphere import SphereTracing, rounding_floor
 
 #: Golden-section evaluations that refine the marched near miss: the bracket shrinks
 #: to 0.618¹⁰ ≈ 0.8 % of its width, so t* lies within ~0.4 % of a step of the minimum
@@ -92,7 +92,7 @@ def inner_hit(sdf, origin, p_s, n_s, radius, settings):
     """Where a ray from `origin` aimed INSIDE_AIM pixel inside the outline enters the
     surface: (entry point, unit direction, found), no gradient.
 
-    The aim point q = p_s − κ n_s, κ = INSIDE_AIM · 2r*, lies inside the surface
+    The aim point q = p_s − κ n_s, κ = max(INSIDE_AIM · 2r*, 4 rounding floors), lies inside the surface
     (f(q) ≈ −κ). A coarse march (hit threshold a quarter of a pixel) brings the ray
     near the surface without passing it, and `ILLINOIS_STEPS` steps of regula falsi
     (Illinois) on [t_march, |q − o|], where f changes sign, find the entry: grazing
@@ -100,7 +100,10 @@ def inner_hit(sdf, origin, p_s, n_s, radius, settings):
     """
     sdf, o, p_s, n_s, radius = stop_gradient((sdf, origin, p_s, n_s, radius))
     dtype = o.dtype
-    q = p_s - INSIDE_AIM * 2.0 * radius * n_s
+    # The aim's depth κ never below a few rounding floors of f at p_s: closer, f(q)
+    # could round to ≥ 0 (scenes in large units, a far outline) and the entry is lost.
+    kappa = jnp.maximum(INSIDE_AIM * 2.0 * radius, 4.0 * rounding_floor(p_s))
+    q = p_s - kappa * n_s
     v = q - o
     t_q = jnp.sqrt(dot(v, v))
     aim = normalize(v)
