@@ -668,9 +668,8 @@ REPLAY_VARIANTS = {
 }
 
 
-@pytest.mark.parametrize("variant", ["whitted"] + [
-    pytest.param(v, marks=[pytest.mark.slow] + [UNVERIFIED] * (v == "silhouette"))
-    for v in REPLAY_VARIANTS if v != "whitted"])
+@pytest.mark.parametrize("variant", ["whitted"] + [pytest.param(v, marks=pytest.mark.slow)
+                                                   for v in REPLAY_VARIANTS if v != "whitted"])
 def test_replay_image_equals_the_record(variant):
     """The loop-free replay of a recorded render (every march read from the tape) computes
     the lane kernel's image and AOVs, to rounding."""
