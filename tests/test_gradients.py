@@ -759,7 +759,6 @@ def test_replay_gradients_equal_the_reference_path_through_height_fields(kind):
     Problem(*_terrain_scene(height), FD).check_replay()
 
 
-@UNVERIFIED
 @pytest.mark.slow
 def test_replay_gradients_equal_the_reference_path_with_silhouettes():
     """Outline gradients (the silhouette estimator: near-miss search, projection, inner
