@@ -668,7 +668,7 @@ REPLAY_VARIANTS = {
 }
 
 
-@pytest.mark.parametrize("variant", ["whitted"] + [pytest.param(v, marks=[pytest.mark.slow, UNVERIFIED])
+@pytest.mark.parametrize("variant", ["whitted"] + [pytest.param(v, marks=pytest.mark.slow)
                                                    for v in REPLAY_VARIANTS if v != "whitted"])
 def test_replay_image_equals_the_record(variant):
     """The loop-free replay of a recorded render (every march read from the tape) computes
@@ -759,7 +759,6 @@ def test_replay_gradients_equal_the_reference_path_through_height_fields(kind):
     Problem(*_terrain_scene(height), FD).check_replay()
 
 
-@UNVERIFIED
 @pytest.mark.slow
 def test_replay_gradients_equal_the_reference_path_with_silhouettes():
     """Outline gradients (the silhouette estimator: near-miss search, projection, inner
