@@ -90,15 +90,19 @@ def _iota(eqn, ins, ctx):
     return [lanes_of(np.broadcast_to(a, shape))]
 
 
+def _reduced_last(x, axes):
+    """x with the reduced `axes` moved last and flattened into one: shape kept + (n,)."""
+    keep = [a for a in range(x.ndim) if a not in axes]
+    moved = np.transpose(x, keep + list(axes))
+    return moved.reshape(moved.shape[: len(keep)] + (-1,))
+
+
 def _reduce(name):
     def rule(eqn, ins, ctx):
         (x,) = ins
-        axes = tuple(eqn.params["axes"])
         dtype = eqn.outvars[0].aval.dtype
-        keep = [a for a in range(x.ndim) if a not in axes]
-        moved = np.transpose(x, keep + list(axes))
-        out_shape = moved.shape[: len(keep)]
-        moved = moved.reshape(out_shape + (-1,))
+        moved = _reduced_last(x, tuple(eqn.params["axes"]))
+        out_shape = moved.shape[:-1]
         out = _obj(out_shape)
         for idx in np.ndindex(out_shape):
             out[idx] = _fold(list(moved[idx]), name, dtype, ctx)
@@ -110,13 +114,10 @@ def _reduce(name):
 def _arg_reduce(better):
     def rule(eqn, ins, ctx):
         (x,) = ins
-        axes = tuple(eqn.params["axes"])
         idx_dtype = eqn.params["index_dtype"]
         val_dtype = eqn.invars[0].aval.dtype
-        keep = [a for a in range(x.ndim) if a not in axes]
-        moved = np.transpose(x, keep + list(axes))
-        out_shape = moved.shape[: len(keep)]
-        moved = moved.reshape(out_shape + (-1,))
+        moved = _reduced_last(x, tuple(eqn.params["axes"]))
+        out_shape = moved.shape[:-1]
         out = _obj(out_shape)
         for idx in np.ndindex(out_shape):
             vals = list(moved[idx])
