@@ -203,7 +203,11 @@ def test_accepted_extremes_render_finite_images_without_dropped_hits(dials):
     budget = {"max_steps", "pixel_epsilon", "shadow_max_distance"} & set(dials)
     if not budget:  # an accuracy dial may not lose a hit that the defaults find
         ref = jr.render(scene, camera, base)
-        assert np.array_equal(np.asarray(image.coverage) > 0, np.asarray(ref.coverage) > 0), dials
+        got, want = np.asarray(image.coverage) > 0, np.asarray(ref.coverage) > 0
+        if dials.get("silhouette"):  # the outline band adds partial coverage beside outlines
+            assert np.all(got[want]), dials
+        else:
+            assert np.array_equal(got, want), dials
 
 
 # --------------------------------------------------------------------------- analytic planes
