@@ -192,7 +192,7 @@ class SceneHit(NamedTuple):
     normal: jnp.ndarray
     material: jnp.ndarray
     surface: jnp.ndarray
-    inside: jnp.ndarray = None
+    inside: jnp.ndarray
 
 
 def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
