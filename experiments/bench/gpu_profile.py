@@ -73,28 +73,37 @@ def main(argv=None):
               f"({args.calls} back to back)", flush=True)
         if args.no_trace:
             continue
-        tmp = tempfile.mkdtemp()
-        with jax.profiler.trace(tmp):
-            for _ in range(args.calls):
-                out = f(dyn_)
-            out.rgb.block_until_ready()
-        path = glob.glob(os.path.join(tmp, "**", "*.xplane.pb"), recursive=True)[0]
-        pd = jax.profiler.ProfileData.from_file(path)
-        for plane in pd.planes:
-            if not (plane.name.startswith("/device:GPU") or (
-                    jax.default_backend() == "cpu" and plane.name.startswith("/host:CPU"))):
+        print_kernel_times(lambda: f(dyn_).rgb, args.calls, name)
+
+
+def print_kernel_times(call, calls, name, top=12):
+    """Run `call()` `calls` times under `jax.profiler.trace` and print the device time of
+    each kernel per call (summed over the calls, divided by their number), largest first."""
+    import jax
+
+    tmp = tempfile.mkdtemp()
+    with jax.profiler.trace(tmp):
+        for _ in range(calls):
+            out = call()
+        jax.block_until_ready(out)
+    path = glob.glob(os.path.join(tmp, "**", "*.xplane.pb"), recursive=True)[0]
+    pd = jax.profiler.ProfileData.from_file(path)
+    for plane in pd.planes:
+        if not (plane.name.startswith("/device:GPU") or (
+                jax.default_backend() == "cpu" and plane.name.startswith("/host:CPU"))):
+            continue
+        for line in plane.lines:
+            totals, counts = defaultdict(float), defaultdict(int)
+            for ev in line.events:
+                totals[ev.name] += ev.duration_ns
+                counts[ev.name] += 1
+            if not totals:
                 continue
-            for line in plane.lines:
-                totals, counts = defaultdict(float), defaultdict(int)
-                for ev in line.events:
-                    totals[ev.name] += ev.duration_ns
-                    counts[ev.name] += 1
-                if not totals:
-                    continue
-                total = sum(totals.values()) / args.calls / 1e3
-                print(f"\n{name} | {plane.name} | {line.name}: {total:.1f} us per render")
-                for k, v in sorted(totals.items(), key=lambda kv: -kv[1])[:12]:
-                    print(f"  {v / args.calls / 1e3:9.1f} us  x{counts[k] / args.calls:<5.1f} {k[:90]}")
+            total = sum(totals.values()) / calls / 1e3
+            print(f"\n{name} | {plane.name} | {line.name}: {total:.1f} us per call, "
+                  f"{sum(counts.values()) / calls:.0f} kernels")
+            for k, v in sorted(totals.items(), key=lambda kv: -kv[1])[:top]:
+                print(f"  {v / calls / 1e3:9.1f} us  x{counts[k] / calls:<5.1f} {k[:90]}")
 
 
 if __name__ == "__main__":

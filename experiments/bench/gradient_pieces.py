@@ -5,7 +5,10 @@ primal, its jvp, its vjp split into forward (residuals) and transpose, its
 value_and_grad, and the whole value_and_grad of an L2 loss; medians of REPEATS turns in
 one process (ratios to the plain kernel; XLA's flop counts see a loop body once).
 
-    python experiments/bench/gradient_pieces.py [W H REPEATS [--only-kernels]]
+    python experiments/bench/gradient_pieces.py [W H REPEATS] [--only-kernels] [--profile]
+
+--profile: also the device time of every kernel of the recording kernel, the replay's
+vjp forward, its transpose and the whole value_and_grad (`gpu_profile.print_kernel_times`).
 """
 import sys
 import time
@@ -23,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[2]
 args = [a for a in sys.argv[1:] if not a.startswith("--")]
 w, h, reps = (int(a) for a in (args + ["128", "64", "5"][len(args):])[:3])
 only_kernels = "--only-kernels" in sys.argv
+profile = "--profile" in sys.argv
 scene, camera, settings = jr.config.load(ROOT / "configs/scenes/warp_raymarch.toml", width=w, height=h)
 settings = settings.replace(max_steps=128, shadow_steps=128, backend="auto", batch_size=4096)
 scene, camera = _cast((scene, camera), _dtype(settings))
@@ -88,3 +92,11 @@ print(f"warp {w}x{h}, jax {jax.__version__}, {jax.devices()[0].device_kind}, med
 for k, (c, a, flops) in fns.items():
     print(f"{k:32s} {med(times[k])*1e3:9.2f} ms  {med(times[k])/base:5.2f}x plain  "
           f"XLA flops {flops:.3g}  compile {comp[k]:.0f} s")
+if profile:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from gpu_profile import print_kernel_times
+
+    for k in ("record kernel", "replay vjp forward (residuals)", "replay transpose", "value_and_grad"):
+        if k in fns:
+            c, a, _ = fns[k]
+            print_kernel_times(lambda c=c, a=a: c(*a), reps, k, top=15)
