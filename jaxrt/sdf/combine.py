@@ -14,7 +14,7 @@ smaller one for a union, the larger one for an intersection).
 import equinox as eqx
 import jax.numpy as jnp
 
-from ..vecmath import maximum as _max, minimum as _min, safe_div
+from ..vecmath import maximum as _max, minimum as _min, safe_div, select
 from .base import SDF, check_sdf, non_negative
 from .stack import STACK_THRESHOLD, union_eval, union_lipschitz
 
@@ -105,7 +105,7 @@ class Intersection(SDF):
         d, m = self.children_[0].eval(p)
         for child in self.children_[1:]:
             dc, mc = child.eval(p)
-            m = jnp.where(dc > d, mc, m)
+            m = select(dc > d, mc, m)
             d = _max(d, dc)
         return d, m
 
@@ -129,7 +129,7 @@ class Subtraction(SDF):
     def eval(self, p):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
-        return op_subtraction(da, db), jnp.where(-db > da, mb, ma)
+        return op_subtraction(da, db), select(-db > da, mb, ma)
 
     def lipschitz(self):
         return jnp.maximum(self.a.lipschitz(), self.b.lipschitz())
@@ -161,7 +161,7 @@ class SmoothUnion(_Smooth):
     def eval(self, p):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
-        return op_smooth_union(da, db, self.k), jnp.where(db < da, mb, ma)
+        return op_smooth_union(da, db, self.k), select(db < da, mb, ma)
 
 
 class SmoothSubtraction(_Smooth):
@@ -170,7 +170,7 @@ class SmoothSubtraction(_Smooth):
     def eval(self, p):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
-        return op_smooth_subtraction(da, db, self.k), jnp.where(-db > da, mb, ma)
+        return op_smooth_subtraction(da, db, self.k), select(-db > da, mb, ma)
 
 
 class SmoothIntersection(_Smooth):
@@ -179,4 +179,4 @@ class SmoothIntersection(_Smooth):
     def eval(self, p):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
-        return op_smooth_intersection(da, db, self.k), jnp.where(db > da, mb, ma)
+        return op_smooth_intersection(da, db, self.k), select(db > da, mb, ma)
