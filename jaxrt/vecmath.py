@@ -54,8 +54,14 @@ def _broadcast(x, shape):
 
 
 def clip(x, lo, hi):
-    """min(max(x, lo), hi), as two equations (`jnp.clip` is a nested `jit`)."""
-    return jnp.minimum(jnp.maximum(x, lo), hi)
+    """min(max(x, lo), hi) as one `clamp` (`jnp.clip` is a nested `jit` whose two
+    comparisons each split the derivative at a tie: ½ at x = lo). The derivative is
+    that of `lax.clamp`: 1 strictly between the bounds, else 0; the bounds' own
+    derivatives are 1 where they are the value (x beyond them), 0 at ties."""
+    x = jnp.asarray(x)
+    lo, hi = (_broadcast(lax.convert_element_type(jnp.asarray(b), x.dtype), x.shape)
+              if jnp.ndim(b) else lax.convert_element_type(b, x.dtype) for b in (lo, hi))
+    return lax.clamp(lo, x, hi)
 
 
 def dot(a, b):

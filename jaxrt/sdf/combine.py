@@ -12,6 +12,7 @@ smaller one for a union, the larger one for an intersection).
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from ..vecmath import maximum as _max, minimum as _min, safe_div, select
@@ -34,10 +35,35 @@ def op_intersection(d1, d2):
     return _max(d1, d2)
 
 
+@jax.custom_jvp
 def op_smooth_union(d1, d2, k):
-    """Polynomial smooth minimum with blend width `k` (a bound)."""
+    """Polynomial smooth minimum with blend width `k` (a bound):
+    h = max(k − |d1 − d2|, 0) / k (0 where k = 0), smin = min(d1, d2) − h² k / 4.
+
+    Its derivative, a custom JVP (the chain rule through max, abs and the guarded
+    division costs some thirty equations per blend and gradient): with s = sign(d1 − d2)
+    (+1 at 0, as abs's derivative) and dm the tangent of the smaller operand (the
+    first on ties, `vecmath.minimum`),
+
+        d smin = dm − (h/2) (dk − s (dd1 − dd2)) + (h²/4) dk,
+
+    from d(h² k/4) = (h k/2) dh + (h²/4) dk and k dh = du − h dk, du = dk − s d|d1 − d2|
+    where the blend is active (h > 0; elsewhere h = 0 and both terms vanish).
+    """
     h = safe_div(jnp.maximum(k - jnp.abs(d1 - d2), 0.0), k)
     return _min(d1, d2) - h * h * k * 0.25
+
+
+@op_smooth_union.defjvp
+def _op_smooth_union_jvp(primals, tangents):
+    (d1, d2, k), (t1, t2, tk) = primals, tangents
+    d = d1 - d2
+    h = safe_div(jnp.maximum(k - jnp.abs(d), 0.0), k)
+    half = 0.5 * h
+    dm = select(d2 < d1, t2, t1)
+    dd = select(d >= 0.0, t1 - t2, t2 - t1)
+    out = _min(d1, d2) - h * h * k * 0.25
+    return out, dm + half * dd - (half - 0.5 * half * h) * tk
 
 
 def op_smooth_subtraction(d1, d2, k):

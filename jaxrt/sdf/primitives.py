@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ..vecmath import TINY, _guarded_sqrt, _inverse_where, clip, dot, safe_div, safe_norm, select
+from ..vecmath import TINY, _guarded_sqrt, _inverse_where, clip, dot, minimum, safe_div, safe_norm, select
 from .base import Primitive, as_float, check, material_index, non_negative, positive
 
 # The code of these functions is inlined at every march site of a render, once per
@@ -127,6 +127,8 @@ def sd_cone(p, radius, height):
         d = sqrt(min(a·a, b·b)) · sign(max(−(w_r q_y − w_y q_r), −(w_y − q_y))),
 
     here in scalar components (w_r = r, w_y = y − h; q_y = −h), the same roundings.
+    The min's derivative is that of the smaller operand (the first on an exact tie,
+    where jnp.minimum gives each ½).
     """
     r = safe_norm(p[::2])
     wy = p[1] - height
@@ -134,7 +136,10 @@ def sd_cone(p, radius, height):
     tb = clip(safe_div(r, radius), 0.0, 1.0)
     ar, ay = r - radius * t, wy + height * t
     br, by = r - radius * tb, wy + height
-    d = _guarded_sqrt(jnp.minimum(ar * ar + ay * ay, br * br + by * by), 0.0)
+    # `vecmath.minimum`: its derivative follows the comparison. (jnp.minimum's tests
+    # a == min(a, b), and XLA contracts a sum of products into fused multiply–adds in
+    # some fusions and not in others: under jit neither operand passed that test.)
+    d = _guarded_sqrt(minimum(ar * ar + ay * ay, br * br + by * by), 0.0)
     s = jnp.maximum(r * height + wy * radius, -by)
     return select(s > 0.0, d, -d)
 
