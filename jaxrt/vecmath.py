@@ -15,11 +15,53 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax import lax
 
 #: Squared lengths below this are treated as zero by `normalize` and `safe_norm`.
 #: Chosen far below float32's smallest normal number squared would underflow (1e-38),
 #: and far above float64's, so it works for both precisions.
 TINY = 1e-30
+
+
+def select(pred, on_true, on_false):
+    """`jnp.where(pred, on_true, on_false)` as one `select_n` equation.
+
+    (`jnp.where` is a nested `jit` of its own, with a `convert_element_type` per Python
+    scalar, in every SDF evaluation and in every gradient of one.) The operands
+    broadcast as in numpy; Python scalars take the dtype of the array operand.
+    """
+    pred = jnp.asarray(pred)
+    dtype = jnp.result_type(on_true, on_false)
+    shape = jnp.broadcast_shapes(pred.shape, *(jnp.shape(x) for x in (on_true, on_false)))
+
+    def full(x):
+        if isinstance(x, (int, float)):
+            return lax.full(shape, x, dtype)
+        return _broadcast(lax.convert_element_type(x, dtype), shape)
+
+    return lax.select(_broadcast(pred, shape), full(on_true), full(on_false))
+
+
+def _broadcast(x, shape):
+    """`x` broadcast to `shape` (numpy rules; no equation where it has that shape)."""
+    if x.shape == tuple(shape):
+        return x
+    lead = len(shape) - x.ndim
+    keep = tuple(i + lead for i, n in enumerate(x.shape) if n == shape[i + lead])
+    if len(keep) != x.ndim:
+        x = lax.reshape(x, tuple(n for i, n in enumerate(x.shape) if n == shape[i + lead]))
+    return lax.broadcast_in_dim(x, tuple(shape), keep)
+
+
+def clip(x, lo, hi):
+    """min(max(x, lo), hi) as one `clamp` (`jnp.clip` is a nested `jit` whose two
+    comparisons each split the derivative at a tie: ½ at x = lo). The derivative is
+    that of `lax.clamp`: 1 strictly between the bounds, else 0; the bounds' own
+    derivatives are 1 where they are the value (x beyond them), 0 at ties."""
+    x = jnp.asarray(x)
+    lo, hi = (_broadcast(lax.convert_element_type(jnp.asarray(b), x.dtype), x.shape)
+              if jnp.ndim(b) else lax.convert_element_type(b, x.dtype) for b in (lo, hi))
+    return lax.clamp(lo, x, hi)
 
 
 def dot(a, b):
@@ -33,12 +75,19 @@ def _guarded_sqrt(x, tiny):
     return jnp.sqrt(jnp.maximum(x, 0.0))
 
 
+def _inverse_where(ok, y):
+    """1/y where `ok`, else 0, with the double-`where` guard (finite derivatives of every
+    order where not `ok`)."""
+    return select(ok, 1.0 / select(ok, y, 1.0), 0.0)
+
+
 @_guarded_sqrt.defjvp
 def _guarded_sqrt_jvp(tiny, primals, tangents):
+    # d sqrt(x) = tx / (2 sqrt x); the tangent is one product with a primal-only
+    # factor, so its transpose is one product too.
     (x,), (tx,) = primals, tangents
     y = _guarded_sqrt(x, tiny)
-    ok = x > tiny
-    return y, jnp.where(ok, 0.5 * tx / jnp.where(ok, y, 1.0), 0.0)
+    return y, tx * (0.5 * _inverse_where(x > tiny, y))
 
 
 def safe_sqrt(x):
@@ -46,9 +95,25 @@ def safe_sqrt(x):
     return _guarded_sqrt(x, 0.0)
 
 
+@partial(jax.custom_jvp, nondiff_argnums=(1,))
 def safe_norm(x, axis=-1):
-    """Euclidean norm with a zero (not NaN) gradient at the zero vector (|x|² ≤ TINY)."""
-    return _guarded_sqrt(jnp.sum(x * x, axis=axis), TINY)
+    """Euclidean norm with a zero (not NaN) gradient at the zero vector (|x|² ≤ TINY).
+
+    d|x| = (x · dx) / |x| (the gradient x / |x|), written as a custom JVP: the chain
+    rule through sqrt(Σ x²) costs a `2x` product, a sum of the two halves of the
+    square's tangent and the guard's selects per evaluation; this is one product with
+    the primal-only factor 1/|x|. The derivative of that factor uses the guarded square
+    root, so second derivatives (gradients of normals) are finite at 0 too.
+    """
+    return jnp.sqrt(jnp.sum(x * x, axis=axis))
+
+
+@safe_norm.defjvp
+def _safe_norm_jvp(axis, primals, tangents):
+    (x,), (tx,) = primals, tangents
+    sq = jnp.sum(x * x, axis=axis)
+    n = _guarded_sqrt(sq, TINY)
+    return n, jnp.sum(x * tx, axis=axis) * _inverse_where(sq > TINY, n)
 
 
 def normalize(x, fallback=None):
@@ -58,8 +123,8 @@ def normalize(x, fallback=None):
     sq = jnp.sum(x * x, axis=-1, keepdims=True)
     inv = 1.0 / jnp.sqrt(jnp.maximum(sq, TINY))
     if fallback is None:
-        fallback = jnp.zeros_like(x).at[..., 2].set(1.0)
-    return jnp.where(sq > TINY, x * inv, fallback)
+        fallback = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], x.dtype), x.shape)
+    return select(sq > TINY, x * inv, fallback)
 
 
 @jax.custom_jvp
@@ -76,7 +141,7 @@ def minimum(a, b):
 @minimum.defjvp
 def _minimum_jvp(primals, tangents):
     (a, b), (ta, tb) = primals, tangents
-    return minimum(a, b), jnp.where(b < a, tb, ta)
+    return minimum(a, b), select(b < a, tb, ta)
 
 
 @jax.custom_jvp
@@ -88,13 +153,13 @@ def maximum(a, b):
 @maximum.defjvp
 def _maximum_jvp(primals, tangents):
     (a, b), (ta, tb) = primals, tangents
-    return maximum(a, b), jnp.where(b > a, tb, ta)
+    return maximum(a, b), select(b > a, tb, ta)
 
 
 def safe_div(a, b, fallback=0.0):
     """`a / b` where `b != 0`, else `fallback`; finite gradients everywhere."""
     ok = b != 0.0
-    return jnp.where(ok, a / jnp.where(ok, b, 1.0), fallback)
+    return select(ok, a / select(ok, b, 1.0), fallback)
 
 
 def cross(a, b):

@@ -12,9 +12,10 @@ smaller one for a union, the larger one for an intersection).
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
-from ..vecmath import maximum as _max, minimum as _min, safe_div
+from ..vecmath import maximum as _max, minimum as _min, safe_div, select
 from .base import SDF, check_sdf, non_negative
 from .stack import STACK_THRESHOLD, union_eval, union_lipschitz
 
@@ -34,10 +35,35 @@ def op_intersection(d1, d2):
     return _max(d1, d2)
 
 
+@jax.custom_jvp
 def op_smooth_union(d1, d2, k):
-    """Polynomial smooth minimum with blend width `k` (a bound)."""
+    """Polynomial smooth minimum with blend width `k` (a bound):
+    h = max(k − |d1 − d2|, 0) / k (0 where k = 0), smin = min(d1, d2) − h² k / 4.
+
+    Its derivative, a custom JVP (the chain rule through max, abs and the guarded
+    division costs some thirty equations per blend and gradient): with s = sign(d1 − d2)
+    (+1 at 0, as abs's derivative) and dm the tangent of the smaller operand (the
+    first on ties, `vecmath.minimum`),
+
+        d smin = dm − (h/2) (dk − s (dd1 − dd2)) + (h²/4) dk,
+
+    from d(h² k/4) = (h k/2) dh + (h²/4) dk and k dh = du − h dk, du = dk − s d|d1 − d2|
+    where the blend is active (h > 0; elsewhere h = 0 and both terms vanish).
+    """
     h = safe_div(jnp.maximum(k - jnp.abs(d1 - d2), 0.0), k)
     return _min(d1, d2) - h * h * k * 0.25
+
+
+@op_smooth_union.defjvp
+def _op_smooth_union_jvp(primals, tangents):
+    (d1, d2, k), (t1, t2, tk) = primals, tangents
+    d = d1 - d2
+    h = safe_div(jnp.maximum(k - jnp.abs(d), 0.0), k)
+    half = 0.5 * h
+    dm = select(d2 < d1, t2, t1)
+    dd = select(d >= 0.0, t1 - t2, t2 - t1)
+    out = _min(d1, d2) - h * h * k * 0.25
+    return out, dm + half * dd - (half - 0.5 * half * h) * tk
 
 
 def op_smooth_subtraction(d1, d2, k):
@@ -105,7 +131,7 @@ class Intersection(SDF):
         d, m = self.children_[0].eval(p)
         for child in self.children_[1:]:
             dc, mc = child.eval(p)
-            m = jnp.where(dc > d, mc, m)
+            m = select(dc > d, mc, m)
             d = _max(d, dc)
         return d, m
 
@@ -129,7 +155,7 @@ class Subtraction(SDF):
     def eval(self, p):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
-        return op_subtraction(da, db), jnp.where(-db > da, mb, ma)
+        return op_subtraction(da, db), select(-db > da, mb, ma)
 
     def lipschitz(self):
         return jnp.maximum(self.a.lipschitz(), self.b.lipschitz())
@@ -161,7 +187,7 @@ class SmoothUnion(_Smooth):
     def eval(self, p):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
-        return op_smooth_union(da, db, self.k), jnp.where(db < da, mb, ma)
+        return op_smooth_union(da, db, self.k), select(db < da, mb, ma)
 
 
 class SmoothSubtraction(_Smooth):
@@ -170,7 +196,7 @@ class SmoothSubtraction(_Smooth):
     def eval(self, p):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
-        return op_smooth_subtraction(da, db, self.k), jnp.where(-db > da, mb, ma)
+        return op_smooth_subtraction(da, db, self.k), select(-db > da, mb, ma)
 
 
 class SmoothIntersection(_Smooth):
@@ -179,4 +205,4 @@ class SmoothIntersection(_Smooth):
     def eval(self, p):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
-        return op_smooth_intersection(da, db, self.k), jnp.where(db > da, mb, ma)
+        return op_smooth_intersection(da, db, self.k), select(db > da, mb, ma)

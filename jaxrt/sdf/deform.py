@@ -48,7 +48,8 @@ class SineDisplacement(eqx.Module):
         self.frequency = as_float(frequency, (), "SineDisplacement(frequency=...)")
 
     def __call__(self, p):
-        return jnp.prod(jnp.sin(self.frequency * p))
+        a, b, c = jnp.split(jnp.sin(self.frequency * p), 3, axis=-1)
+        return jnp.squeeze(a * b * c, -1)
 
     def lipschitz(self):
         return jnp.abs(self.frequency)
@@ -121,10 +122,10 @@ class Twist(SDF):
         return (self.child,)
 
     def eval(self, p):
-        a = self.rate * p[1]
+        x, y, z = jnp.split(p, 3, axis=-1)
+        a = self.rate * y
         c, s = jnp.cos(a), jnp.sin(a)
-        q = jnp.stack([c * p[0] - s * p[2], p[1], s * p[0] + c * p[2]])
-        return self.child.eval(q)
+        return self.child.eval(jnp.concatenate([c * x - s * z, y, s * x + c * z], axis=-1))
 
     def lipschitz(self):
         return self.child.lipschitz() * _twist_lipschitz(self.rate, self.radius)
@@ -151,10 +152,10 @@ class Bend(SDF):
         return (self.child,)
 
     def eval(self, p):
-        a = self.rate * p[0]
+        x, y, z = jnp.split(p, 3, axis=-1)
+        a = self.rate * x
         c, s = jnp.cos(a), jnp.sin(a)
-        q = jnp.stack([c * p[0] - s * p[1], s * p[0] + c * p[1], p[2]])
-        return self.child.eval(q)
+        return self.child.eval(jnp.concatenate([c * x - s * y, s * x + c * y, z], axis=-1))
 
     def lipschitz(self):
         return self.child.lipschitz() * _bend_lipschitz(self.rate, self.radius)

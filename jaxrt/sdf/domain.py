@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..vecmath import cross, dot, normalize, safe_div
+from ..vecmath import clip, cross, dot, normalize, safe_div, select
 from .base import SDF, as_float, check, check_sdf, non_negative, positive
 
 
@@ -19,6 +19,26 @@ def rotate_axis_angle(p, axis, angle):
     """Rodrigues' rotation of `p` by `angle` (radians) about unit `axis`."""
     c, s = jnp.cos(angle), jnp.sin(angle)
     return p * c + cross(axis, p) * s + axis * dot(axis, p) * (1.0 - c)
+
+
+#: ε_ijk, the Levi-Civita symbol: [a]×_ij = −ε_ijk a_k is the cross-product matrix of a.
+_LEVI_CIVITA = np.zeros((3, 3, 3))
+for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+    _LEVI_CIVITA[_i, _j, _k], _LEVI_CIVITA[_j, _i, _k] = 1.0, -1.0
+
+
+def axis_angle_matrix(axis, angle):
+    """Rodrigues' rotation matrix R = c I + s [a]× + (1 − c) a aᵀ (c = cos θ, s = sin θ)
+    of `angle` θ (radians) about unit `axis` a: R p = `rotate_axis_angle(p, a, θ)`.
+
+    Built from the parameters alone (no point), so under `vmap` over points it is
+    computed once and each point costs one matrix–vector product.
+    """
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    dtype = jnp.result_type(axis)
+    cross_matrix = -jnp.tensordot(jnp.asarray(_LEVI_CIVITA, dtype), axis, axes=1)
+    return (c * jnp.eye(3, dtype=dtype) + s * cross_matrix
+            + (1.0 - c) * jnp.outer(axis, axis))
 
 
 def quaternion_to_axis_angle(q):
@@ -81,8 +101,9 @@ class Rotate(_Wrap):
         self.angle = as_float(angle, (), "Rotate(angle=...)")
 
     def eval(self, p):
-        axis = normalize(self.axis)
-        return self.child.eval(rotate_axis_angle(p, axis, -jnp.deg2rad(self.angle)))
+        # f(R(−θ) p) = f(R(θ)ᵀ p): one matrix–vector product per point.
+        rotation = axis_angle_matrix(normalize(self.axis), jnp.deg2rad(self.angle))
+        return self.child.eval(p @ rotation)
 
 
 class Transform(_Wrap):
@@ -151,6 +172,6 @@ class Repeat(_Wrap):
         cell = jnp.round(safe_div(p, self.period))
         if self.count is not None:
             c = jnp.asarray(self.count, dtype=p.dtype)
-            cell = jnp.clip(cell, -c, c)
-        q = jnp.where(active, p - self.period * cell, p)
+            cell = clip(cell, -c, c)
+        q = select(active, p - self.period * cell, p)
         return self.child.eval(q)

@@ -8,9 +8,17 @@ Euclidean signed distance or only a bound (|f| ≤ true distance, same sign).
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
-from ..vecmath import dot, maximum, safe_div, safe_norm, safe_sqrt
+from ..vecmath import TINY, _guarded_sqrt, _inverse_where, clip, dot, minimum, safe_div, safe_norm, select
 from .base import Primitive, as_float, check, material_index, non_negative, positive
+
+# The code of these functions is inlined at every march site of a render, once per
+# primitive of the scene, so it is written for few equations (under `vmap`, with its
+# gradient): whole-vector operations, `p[::2]` (one strided slice) for (x, z), one
+# custom JVP where the chain rule would differentiate a max, an abs and a norm apart
+# (`_box_like`), and `vecmath.select` in place of `jnp.where` (a nested jit).
+# tests/test_sdf.py::test_equation_budget holds each primitive to its size.
 
 
 # -- plain distance functions (point first, then the shape's parameters) -------------
@@ -26,34 +34,72 @@ def sd_plane(p, normal, offset):
     return dot(p, normal) - offset
 
 
-def _box_like(q, size):
-    """|max(q, 0)| + min(max q, 0), the distance of box-like shapes of extent `size`.
+def _split_last(x):
+    """The components of `x` along its last axis, each of shape [..., 1] (one `split`)."""
+    return jnp.split(x, x.shape[-1], axis=-1)
 
-    Within a band of 64 ulps of `size` outside the surface the value is max q (equal
-    to |max(q, 0)| on a face, a bound by less than the band at an edge). Newton-polished
-    hits lie within rounding of a face, where the plain formula's gradient depends on
-    rounding (`safe_norm` below its threshold gives 0, ties of max(q, 0) and min(·, 0)
-    at 0 give 2/3 of the normal); the band puts them on one side of the switch.
 
-    max q is taken by `vecmath.maximum`, whose gradient follows the comparison (the
-    first of equal components, as argmax): the nearest face's normal. (The gradient of
-    `jnp.max` selects the components equal to the maximum, and where XLA computes q
-    twice with different roundings — it does, in some gradient programs — none is
-    equal and the normal comes out as 0; q[argmax q] costs a chain of integer
-    compares in the fused lane kernels.)
+def _first_max(q):
+    """(max_i q_i, the index's comparison chain): the components of `q` ([..., n]) and
+    the conditions c_i = q_i > max(q_0..q_{i−1}), i ≥ 1 (the first maximum wins ties)."""
+    comps = _split_last(q)
+    best, conds = comps[0], []
+    for qi in comps[1:]:
+        conds.append(qi > best)
+        best = jnp.maximum(best, qi)
+    return conds
+
+
+@jax.custom_jvp
+def _box_like(q, band):
+    """|max(q, 0)| where max q > band, else max q: the distance of box-like shapes.
+
+    `band` = 64 ulps of the shape's extent (`_box_band`). Within the band outside the
+    surface the value is max q (equal to |max(q, 0)| on a face, a bound by less than
+    the band at an edge). Newton-polished hits lie within rounding of a face, where the
+    plain formula's gradient depends on rounding (the norm below its threshold gives 0,
+    ties of max(q, 0) and min(·, 0) at 0 give 2/3 of the normal); the band puts them on
+    one side of the switch. (max(max q, 0) > band ⟺ max q > band, as band > 0.)
+
+    Derivative (a custom JVP, so that one evaluation's gradient is a handful of
+    equations): d|o| = (o · dq)/|o| with o = max(q, 0) (zero where |o|² ≤ TINY; the
+    components with q_i ≤ 0 have o_i = 0, so the derivative of max(·, 0) is not
+    needed), and d(max q) = dq_i of the first maximal component, found by the chain of
+    comparisons q_i > max(q_0..q_{i−1}) (the gradient of `jnp.max` selects the
+    components *equal* to the maximum, and where XLA computes q twice with different
+    roundings — it does, in some gradient programs — none is equal and the normal comes
+    out as 0; q[argmax q] costs a chain of integer compares in the fused lane kernels).
     """
-    band = 64.0 * jnp.finfo(q.dtype).eps * (1.0 + size)
-    outside = jnp.maximum(q, 0.0)
-    far = jnp.max(outside) > band
-    nearest = q[0]
-    for i in range(1, q.shape[0]):
-        nearest = maximum(nearest, q[i])
-    return jnp.where(far, safe_norm(outside), nearest)
+    nearest = jnp.max(q, axis=-1)
+    o = jnp.maximum(q, 0.0)
+    return select(nearest > band, jnp.sqrt(jnp.sum(o * o, axis=-1)), nearest)
+
+
+@_box_like.defjvp
+def _box_like_jvp(primals, tangents):
+    (q, band), (tq, _) = primals, tangents
+    nearest = jnp.max(q, axis=-1)
+    o = jnp.maximum(q, 0.0)
+    sq = jnp.sum(o * o, axis=-1)
+    n = _guarded_sqrt(sq, TINY)
+    far = nearest > band
+    t_far = jnp.sum(o * tq, axis=-1) * _inverse_where(sq > TINY, n)
+    comps = _split_last(tq)
+    t_near = comps[0]
+    for c, ti in zip(_first_max(q), comps[1:]):
+        t_near = select(c, ti, t_near)
+    return select(far, n, nearest), select(far, t_far, t_near[..., 0])
+
+
+def _box_band(size):
+    """64 ulps of a shape of extent `size` (the switch band of `_box_like`)."""
+    return 64.0 * jnp.finfo(size.dtype).eps * (1.0 + size)
 
 
 def sd_box(p, half_extents):
-    """Exact: signed distance to an axis-aligned box centred at the origin."""
-    return _box_like(jnp.abs(p) - half_extents, jnp.max(jnp.abs(half_extents)))
+    """Exact: signed distance to an axis-aligned box centred at the origin,
+    q = |p| − b, |max(q, 0)| + min(max q, 0) (IQ's sdBox; `_box_like`)."""
+    return _box_like(jnp.abs(p) - half_extents, _box_band(jnp.max(jnp.abs(half_extents))))
 
 
 def sd_round_box(p, half_extents, radius):
@@ -66,37 +112,50 @@ def sd_round_box(p, half_extents, radius):
 
 
 def sd_torus(p, major_radius, minor_radius):
-    """Exact: torus around the y axis."""
-    q = jnp.stack([safe_norm(p[jnp.array([0, 2])]) - major_radius, p[1]])
+    """Exact: torus around the y axis, |(|p_xz| − R, p_y)| − r."""
+    q = jnp.stack([safe_norm(p[::2]) - major_radius, p[1]])
     return safe_norm(q) - minor_radius
 
 
 def sd_cone(p, radius, height):
     """Exact: solid cone, base disc of `radius` in the plane y = 0, apex at y = `height`.
 
-    2-D distance to the profile triangle in the (r, y) half-plane (IQ's capped sdCone).
+    2-D distance to the profile triangle in the (r, y) half-plane (IQ's capped sdCone):
+    with w = (|p_xz|, y − h) and q = (R, −h),
+
+        a = w − q·clip(w·q / q·q, 0, 1),   b = w − q·(clip(w_r / R, 0, 1), 1),
+        d = sqrt(min(a·a, b·b)) · sign(max(−(w_r q_y − w_y q_r), −(w_y − q_y))),
+
+    here in scalar components (w_r = r, w_y = y − h; q_y = −h), the same roundings.
+    The min's derivative is that of the smaller operand (the first on an exact tie,
+    where jnp.minimum gives each ½).
     """
-    w = jnp.stack([safe_norm(p[jnp.array([0, 2])]), p[1] - height])
-    q = jnp.stack([radius, -height])
-    a = w - q * jnp.clip(safe_div(dot(w, q), dot(q, q)), 0.0, 1.0)
-    b = w - q * jnp.stack([jnp.clip(safe_div(w[0], q[0]), 0.0, 1.0), 1.0])
-    d2 = jnp.minimum(dot(a, a), dot(b, b))
-    s = jnp.maximum(-(w[0] * q[1] - w[1] * q[0]), -(w[1] - q[1]))
-    return safe_sqrt(d2) * jnp.where(s > 0.0, 1.0, -1.0)
+    r = safe_norm(p[::2])
+    wy = p[1] - height
+    t = clip(safe_div(r * radius - wy * height, radius * radius + height * height), 0.0, 1.0)
+    tb = clip(safe_div(r, radius), 0.0, 1.0)
+    ar, ay = r - radius * t, wy + height * t
+    br, by = r - radius * tb, wy + height
+    # `vecmath.minimum`: its derivative follows the comparison. (jnp.minimum's tests
+    # a == min(a, b), and XLA contracts a sum of products into fused multiply–adds in
+    # some fusions and not in others: under jit neither operand passed that test.)
+    d = _guarded_sqrt(minimum(ar * ar + ay * ay, br * br + by * by), 0.0)
+    s = jnp.maximum(r * height + wy * radius, -by)
+    return select(s > 0.0, d, -d)
 
 
 def sd_capsule(p, half_height, radius):
-    """Exact: points within `radius` of the segment from y = −h to y = +h."""
-    q = p.at[1].set(p[1] - jnp.clip(p[1], -half_height, half_height))
-    return safe_norm(q) - radius
+    """Exact: points within `radius` of the segment from y = −h to y = +h:
+    |p − clip(p, (0, −h, 0), (0, h, 0))| − r."""
+    h = jnp.stack([0.0, half_height, 0.0])
+    return safe_norm(p - clip(p, -h, h)) - radius
 
 
 def sd_cylinder(p, radius, half_height):
-    """Exact: capped cylinder around the y axis, |y| ≤ half_height."""
-    d = jnp.abs(jnp.stack([safe_norm(p[jnp.array([0, 2])]), p[1]])) - jnp.stack(
-        [radius, half_height]
-    )
-    return _box_like(d, jnp.maximum(jnp.abs(radius), jnp.abs(half_height)))
+    """Exact: capped cylinder around the y axis, |y| ≤ half_height: the 2-D box distance
+    of d = |(|p_xz|, p_y)| − (R, h) (IQ's sdCappedCylinder; `_box_like`)."""
+    d = jnp.abs(jnp.stack([safe_norm(p[::2]), p[1]])) - jnp.stack([radius, half_height])
+    return _box_like(d, _box_band(jnp.maximum(jnp.abs(radius), jnp.abs(half_height))))
 
 
 def sd_ellipsoid(p, radii):
@@ -115,7 +174,7 @@ def sd_ellipsoid(p, radii):
     k1 = safe_norm(p / (radii * radii))
     outside = safe_div(k0 * (k0 - 1.0), k1)
     inside = (k0 - 1.0) * jnp.min(radii)
-    return jnp.where(k0 > 1.0, outside, inside)
+    return select(k0 > 1.0, outside, inside)
 
 
 # -- scene nodes ---------------------------------------------------------------------

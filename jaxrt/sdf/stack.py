@@ -32,6 +32,8 @@ sixteen, not sixteen groups of one."""
 import jax
 import jax.numpy as jnp
 
+from ..vecmath import select
+
 from .base import SDF, Primitive
 
 # Groups with at least this many members are stacked; smaller ones stay a loop (the
@@ -111,7 +113,7 @@ def stacked_eval(stacked, p, ids=None):
         child, k, i = xs
         dc, mc = child.eval(p)
         take = (k == 0) | (dc < d)
-        return (jnp.where(take, dc, d), jnp.where(take, mc, m), jnp.where(take, i, j)), None
+        return (select(take, dc, d), select(take, mc, m), select(take, i, j)), None
 
     (d, m, j), _ = jax.lax.scan(step, (d0, m0, jnp.int32(0)),
                                 (stacked, jnp.arange(n, dtype=jnp.int32), ids))
@@ -135,8 +137,9 @@ def union_eval(children, p, threshold=None):
         d, m = children[0].eval(p)
         for child in children[1:]:
             dc, mc = child.eval(p)
-            m = jnp.where(dc < d, mc, m)
-            d = jnp.where(dc < d, dc, d)
+            take = dc < d
+            m = select(take, mc, m)
+            d = select(take, dc, d)
         return d, m
     best = None
     for ix, members in groups:
@@ -150,7 +153,7 @@ def union_eval(children, p, threshold=None):
                 continue
             d, m, i = best
             take = (dc < d) | ((dc == d) & (ic < i))
-            best = (jnp.where(take, dc, d), jnp.where(take, mc, m), jnp.where(take, ic, i))
+            best = (select(take, dc, d), select(take, mc, m), select(take, ic, i))
     return best[0], best[1]
 
 
