@@ -98,12 +98,12 @@ def penumbra(sdf, origin, wi, found, options):
         h = clip(k · sign · f(o + t* wi) / (L t*), 0, 1),
 
     with t* held fixed (no gradient) and everything else differentiable; the sign
-    (inside a solid) and the Lipschitz factor L carry no gradient.
+    (inside a solid: found["sign"], which the march measured) and the Lipschitz factor
+    L carry no gradient.
     """
     dtype = origin.dtype
-    fixed = stop_gradient(sdf)
-    sign = jnp.where(fixed(stop_gradient(origin)) < 0.0, -1.0, 1.0).astype(dtype)
-    inv_lipschitz = 1.0 / fixed.lipschitz().astype(dtype)
+    sign = jax.lax.stop_gradient(found["sign"]).astype(dtype)  # the march's f(o) < 0
+    inv_lipschitz = 1.0 / stop_gradient(sdf).lipschitz().astype(dtype)
     t = found["t"]
     lowered = t > 0.0
     safe_t = jnp.where(lowered, t, 1.0)

@@ -16,7 +16,10 @@ marched t̂ (held constant),
 has the value of a polished root and, because t̂ and ∇f·d carry no gradient, exactly the
 derivative dt*/dθ = −(∂f/∂θ + ∇f · ∂(o + t d)/∂θ) / (∇f · d) of the design notes.
 `settings.newton_steps` such steps are taken; the gradient is that of the last one, so
-it is evaluated at the second-to-last iterate.
+it is evaluated at the second-to-last iterate. The steps before it run in one bounded
+loop with no gradient (`newton_march`: the program holds one copy of f and ∇f whatever
+the number of steps), and only the last is taken differentiably (`newton_at`: one
+evaluation of f, the slope recorded by the loop).
 
 `settings.root_solver = "optimistix"` polishes instead with `optimistix.root_find`
 (Newton from t̂, `ImplicitAdjoint`, `max_steps = newton_steps`, `throw=False`), whose
@@ -43,6 +46,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from .march import tape
+from .march.search import repeat
 from .march.sphere import SphereTracing, hit_epsilon as hit_epsilon, march as march_sphere
 from .vecmath import dot, normalize, safe_div, safe_sqrt, stop_gradient as stop_gradient
 
@@ -125,27 +129,65 @@ def polish_root(sdf, origin, direction, t, hit, settings):
     """Polish the marched root t̂ of g(t) = f(o + t d) where `hit`, with implicit gradients.
 
     `settings.newton_steps` Newton steps by the rule of `settings.root_solver`:
-    "newton" (`newton_step`, the default) or "optimistix" (`optimistix.root_find`).
+    "newton" (the default) or "optimistix" (`optimistix.root_find`).
     Where not `hit`, and at grazing hits, t̂ is returned with a zero gradient.
 
     Newton steps after the first are kept only while they contract,
     |Δt_k| ≤ |Δt_{k−1}| / 2 (quadratic convergence has set in): a ray that passes
     within ε of a surface without crossing it has a slope ≈ 0 at its closest approach,
     where an unguarded second step would jump arbitrarily far along the ray.
+
+    "newton": the steps run in one bounded loop with no gradient (`newton_march`,
+    through the tape: one copy of f and ∇f whatever newton_steps), which returns the
+    iterate t_j from which the last kept step was taken and the slope ∇f·d there;
+    that step is then taken once more, differentiably (`newton_at`): its value is the
+    loop's last iterate and its gradient the implicit-function derivative of the
+    module docstring, evaluated at t_j.
     """
     if settings.newton_steps == 0:
         return t
     if settings.root_solver == "optimistix":
         return _polish_optimistix(sdf, origin, direction, t, hit, settings.newton_steps)
-    ok, last = hit, None
-    for _ in range(settings.newton_steps):
-        t_new = newton_step(sdf, origin, direction, t)
-        delta = jnp.abs(jax.lax.stop_gradient(t_new - t))
-        if last is not None:
-            ok = ok & (delta <= 0.5 * last)
-        t = jnp.where(ok, t_new, t)
-        last = delta
-    return t
+    steps = settings.newton_steps
+    record = tape.march(lambda *a: newton_march(*a, steps), stop_gradient(sdf),
+                        stop_gradient(origin), stop_gradient(direction),
+                        jax.lax.stop_gradient(t), hit)
+    return newton_at(sdf, origin, direction, record["t"], record["slope"])
+
+
+def newton_march(sdf, origin, direction, t, hit, steps):
+    """`steps` guarded Newton steps t ← t − f(o + t d) / (∇f · d) from t̂ (no gradient;
+    the rule of `polish_root`). Returns {"t": the iterate from which the last kept step
+    was taken (t̂ if none was), "slope": ∇f·d there (0 if none was kept, or the hit
+    grazes there)}: `newton_at` of the two is the polished root."""
+    f_and_grad = jax.value_and_grad(lambda q: sdf(q))
+    inf = jnp.asarray(jnp.inf, t.dtype)
+    zero = jnp.zeros((), t.dtype)
+
+    def body(i, s):
+        t, ok, last, base, base_slope = s
+        f, grad = f_and_grad(origin + t * direction)
+        slope, steep = _slope(grad, direction)
+        t_new = jnp.where(steep, t - safe_div(f, jnp.where(steep, slope, 1.0)), t)
+        delta = jnp.abs(t_new - t)
+        ok = ok & ((i == 0) | (delta <= 0.5 * last))
+        base = jnp.where(ok, t, base)
+        base_slope = jnp.where(ok, jnp.where(steep, slope, zero), base_slope)
+        return jnp.where(ok, t_new, t), ok, delta, base, base_slope
+
+    _, _, _, base, slope = repeat(steps, body, (t, hit, inf, t, zero))
+    return {"t": base, "slope": slope}
+
+
+def newton_at(sdf, origin, direction, t, slope):
+    """One Newton step on g(t) = f(o + t d) from constant t̂ with a given slope s = ∇f·d
+    at t̂ (no gradient): t̂ − f(o + t̂ d) / s, with implicit gradients (module docstring).
+    s = 0 (a grazing hit, or nothing to polish) keeps t̂, with a zero gradient."""
+    t0 = jax.lax.stop_gradient(t)
+    slope = jax.lax.stop_gradient(slope)
+    ok = slope != 0.0
+    f = sdf(origin + t0 * direction)
+    return jnp.where(ok, t0 - safe_div(f, jnp.where(ok, slope, 1.0)), t0)
 
 
 def newton_step(sdf, origin, direction, t):
