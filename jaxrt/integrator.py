@@ -51,7 +51,7 @@ from .kinds import group_by_kind, lookup, stack
 from .lights import shadow_ray
 from .march import SphereTracing, tape
 from .march.search import repeat
-from .trace import hit_epsilon, intersect_plane, sphere_trace, surface_normal
+from .trace import hit_epsilon, intersect_plane, normal_and_material, sphere_trace
 from .vecmath import dot, safe_div, safe_norm, stop_gradient, to_local
 
 
@@ -111,7 +111,7 @@ def spawn_origin(scene, which, p, n, offset, side, steps=2):
     and side may carry a leading batch axis (several origins from one hit share one
     compiled step).
     """
-    x0 = p + offset * n
+    x0 = p + jnp.asarray(offset)[..., None] * n
     if steps == 0:
         return x0
     batched = p.ndim > 1
@@ -221,8 +221,7 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     if planes:
         t, found = _meet_planes(planes, origin, direction, t, found, hit.inside, settings, t_max)
     p = origin + t * direction
-    normal = surface_normal(surface, p, settings)
-    material = surface.eval(jax.lax.stop_gradient(p))[1]
+    normal, material = normal_and_material(surface, p, settings)
     which = jnp.zeros((), jnp.int32)
     for k, field in enumerate(scene.heightfields):
         h = field.intersect(origin, direction, settings, cone=cone, t_max=t_max)

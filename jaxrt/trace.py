@@ -252,6 +252,16 @@ def surface_normal(sdf, p, settings):
     return normalize(g)
 
 
+def normal_and_material(sdf, p, settings):
+    """(`surface_normal(sdf, p, settings)`, the material index at p): with the
+    "autodiff" estimator both come from one evaluation of f (its gradient, and its
+    material as an auxiliary output), so the program holds one copy of f for them."""
+    if settings.normal_mode == "autodiff":
+        g, material = jax.grad(lambda q: sdf.eval(q), has_aux=True)(p)
+        return normalize(g), material
+    return surface_normal(sdf, p, settings), sdf.eval(jax.lax.stop_gradient(p))[1]
+
+
 def intersect_plane(origin, direction, normal, offset):
     """Ray–plane intersection (notes): t = (offset − n·o) / (n·d) for the plane n·p = offset.
 

@@ -120,11 +120,13 @@ def march(sdf, origin, wi, t_max, options):
         phase = s["phase"]
         new = dict(s)
         # The bracket of the golden section, fixed once the march is over.
-        a0, b0 = s["lo"], jnp.minimum(s["hi"], t_max)
-        x1, x2 = b0 - _INV_PHI * (b0 - a0), a0 + _INV_PHI * (b0 - a0)
-        left, a, b, x = golden_point(s)
-        tau = jnp.where(phase == FIRST, x1, jnp.where(phase == SECOND, s["x2"],
-                                                      jnp.where(phase >= GOLDEN, x, s["t"])))
+        tau = s["t"]
+        if refine:
+            a0, b0 = s["lo"], jnp.minimum(s["hi"], t_max)
+            x1, x2 = b0 - _INV_PHI * (b0 - a0), a0 + _INV_PHI * (b0 - a0)
+            left, a, b, x = golden_point(s)
+            tau = jnp.where(phase == FIRST, x1, jnp.where(phase == SECOND, s["x2"],
+                                                          jnp.where(phase >= GOLDEN, x, tau)))
         f = sdf(jnp.where(phase == SIGN, origin, origin + tau * wi))
 
         # SIGN: inside a solid the distance to its surface is −f.
