@@ -152,20 +152,21 @@ def polish_root(sdf, origin, direction, t, hit, settings):
     record = tape.march(lambda *a: newton_march(*a, steps), stop_gradient(sdf),
                         stop_gradient(origin), stop_gradient(direction),
                         jax.lax.stop_gradient(t), hit)
-    return newton_at(sdf, origin, direction, record["t"], record["slope"])
+    return newton_at(sdf, origin, direction, record["t"], record["slope"], record["f"])
 
 
 def newton_march(sdf, origin, direction, t, hit, steps):
     """`steps` guarded Newton steps t ← t − f(o + t d) / (∇f · d) from t̂ (no gradient;
     the rule of `polish_root`). Returns {"t": the iterate from which the last kept step
     was taken (t̂ if none was), "slope": ∇f·d there (0 if none was kept, or the hit
-    grazes there)}: `newton_at` of the two is the polished root."""
+    grazes there), "f": f there (0 if none was kept)}: `newton_at` of the three is the
+    polished root."""
     f_and_grad = jax.value_and_grad(lambda q: sdf(q))
     inf = jnp.asarray(jnp.inf, t.dtype)
     zero = jnp.zeros((), t.dtype)
 
     def body(i, s):
-        t, ok, last, base, base_slope = s
+        t, ok, last, base, base_slope, base_f = s
         f, grad = f_and_grad(origin + t * direction)
         slope, steep = _slope(grad, direction)
         t_new = jnp.where(steep, t - safe_div(f, jnp.where(steep, slope, 1.0)), t)
@@ -173,21 +174,52 @@ def newton_march(sdf, origin, direction, t, hit, steps):
         ok = ok & ((i == 0) | (delta <= 0.5 * last))
         base = jnp.where(ok, t, base)
         base_slope = jnp.where(ok, jnp.where(steep, slope, zero), base_slope)
-        return jnp.where(ok, t_new, t), ok, delta, base, base_slope
+        base_f = jnp.where(ok, f, base_f)
+        return jnp.where(ok, t_new, t), ok, delta, base, base_slope, base_f
 
-    _, _, _, base, slope = repeat(steps, body, (t, hit, inf, t, zero))
-    return {"t": base, "slope": slope}
+    _, _, _, base, slope, f = repeat(steps, body, (t, hit, inf, t, zero, zero))
+    return {"t": base, "slope": slope, "f": f}
 
 
-def newton_at(sdf, origin, direction, t, slope):
+def newton_at(sdf, origin, direction, t, slope, f=None):
     """One Newton step on g(t) = f(o + t d) from constant t̂ with a given slope s = ∇f·d
     at t̂ (no gradient): t̂ − f(o + t̂ d) / s, with implicit gradients (module docstring).
-    s = 0 (a grazing hit, or nothing to polish) keeps t̂, with a zero gradient."""
+    s = 0 (a grazing hit, or nothing to polish) keeps t̂, with a zero gradient. `f`: the
+    value f(o + t̂ d) where a march has it (`evaluated`: f is then only evaluated where
+    the step is differentiated)."""
     t0 = jax.lax.stop_gradient(t)
     slope = jax.lax.stop_gradient(slope)
     ok = slope != 0.0
-    f = sdf(origin + t0 * direction)
+    x = origin + t0 * direction
+    f = sdf(x) if f is None else evaluated(sdf, x, f)
     return jnp.where(ok, t0 - safe_div(f, jnp.where(ok, slope, 1.0)), t0)
+
+
+def evaluated(fn, x, value):
+    """fn(x) whose value is known (`value`, from a march's record, no gradient): returns
+    `value`, with the derivative of fn at x (its JVP in fn's float leaves and in x).
+
+    A custom JVP: the primal program does not evaluate fn at all (a render without
+    derivatives holds no copy of it); only a derivative traces fn's JVP at x."""
+    dyn, static = eqx.partition((fn, x), eqx.is_inexact_array)
+
+    @jax.custom_jvp
+    def known(dyn, value):
+        return value
+
+    @known.defjvp
+    def known_jvp(primals, tangents):
+        dyn, value = primals
+        d_dyn, _ = tangents
+
+        def apply(dyn):
+            fn, x = eqx.combine(dyn, static)
+            return fn(x)
+
+        _, d_value = jax.jvp(apply, (dyn,), (d_dyn,))
+        return value, d_value.astype(value.dtype)
+
+    return known(dyn, jax.lax.stop_gradient(value))
 
 
 def newton_step(sdf, origin, direction, t):

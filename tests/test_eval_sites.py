@@ -21,6 +21,10 @@ from jaxrt.march import shadow, sphere
 from jaxrt.sdf.base import SDF
 
 
+#: Frames that do not name a site: calls, loop bodies, the JVP rule of `trace.evaluated`.
+_PLUMBING = ("__call__", "<lambda>", "step", "repeat", "body", "apply", "known_jvp", "evaluated")
+
+
 class Counting(SDF):
     """`child`, counting its evaluations by the jaxrt function that asked for them."""
 
@@ -34,7 +38,7 @@ class Counting(SDF):
     def eval(self, p):
         site = next(f.name for f in reversed(traceback.extract_stack()[:-1])
                     if "jaxrt" in f.filename and "/sdf/" not in f.filename
-                    and f.name not in ("__call__", "<lambda>", "step", "repeat", "body"))
+                    and f.name not in _PLUMBING)
         self.calls[site] += 1
         return self.child.eval(p)
 
@@ -66,19 +70,30 @@ def _counts(settings, fn=None):
 
 @pytest.mark.parametrize("shadows", ["soft", "hard"])
 def test_each_site_evaluates_the_scene_once_whatever_the_step_counts(shadows):
-    """A diffuse scene with one light: the camera march (1), the Newton polish (the
-    loop's f and ∇f, and the one differentiable step), the normal with its material (1),
-    the origin settling (1), the shadow march (1) and, for soft shadows, the penumbra
-    at its minimum (1), for every newton_steps ≥ 1 and spawn_steps ≥ 1."""
+    """A diffuse scene with one light: the camera march (1), the Newton polish's loop
+    (f and ∇f, 1), the normal with its material (1), the origin settling (1) and the
+    shadow march (1), for every newton_steps ≥ 1 and spawn_steps ≥ 1. The last Newton
+    step and the penumbra take f's value from their marches: only a derivative adds
+    their evaluation (`trace.evaluated`), one each."""
     # "march": the camera ray's and the shadow ray's (sphere-traced, unpolished, if hard).
-    expected = {"march": 2, "newton_march": 1, "newton_at": 1, "normal_and_material": 1,
-                "surface_distance": 1}
-    if shadows == "soft":
-        expected["penumbra"] = 1
+    expected = {"march": 2, "newton_march": 1, "normal_and_material": 1, "surface_distance": 1}
+    # A derivative adds the last Newton step's and the penumbra's (the latter is traced
+    # when the light scan is differentiated, so it is counted there, not by name).
+    added = 2 if shadows == "soft" else 1
+    o, d, cone = jnp.array([0.0, 1.0, -5.0]), jnp.array([0.0, 0.0, 1.0]), jnp.zeros(2)
     for newton, spawn, budget in ((1, 1, 8), (2, 2, 128), (5, 4, 300)):
         settings = jr.RenderSettings(shadows=shadows, newton_steps=newton, spawn_steps=spawn,
                                      max_steps=budget, shadow_steps=budget)
         assert _counts(settings) == expected, (newton, spawn)
+
+        def loss(scene):
+            rgb = lambda s: integrator.trace_radiance(s, o, d, cone, settings)["rgb"]  # noqa: E731
+            return eqx.filter_grad(lambda s: jnp.sum(rgb(s)))(scene)
+
+        counts = _counts(settings, loss)
+        assert counts["newton_at"] == 1
+        assert sum(counts.values()) == sum(expected.values()) + added, counts
+        assert all(counts[site] >= n for site, n in expected.items()), counts
 
 
 @pytest.mark.parametrize("refine", [0, 3, 8])
@@ -107,12 +122,52 @@ def test_sphere_march_evaluates_the_scene_once(relax):
 
 
 def test_penumbra_reads_the_sign_of_the_march():
-    """`lights.penumbra` evaluates the scene once (at the minimum): the side of the
-    surface the ray starts on is the march's record."""
+    """`lights.penumbra` does not evaluate the scene in a render without derivatives:
+    the side of the surface the ray starts on and f at the minimum are the march's."""
     settings = jr.RenderSettings(shadows="soft")
     o, wi = jnp.array([0.0, -0.5, -3.0]), jnp.array([0.0, 1.0, 0.0])
 
     def fn(scene):
         return lights.shadow_ray(scene.surface, o, wi, jnp.asarray(5.0), settings)
 
-    assert _counts(None, fn) == {"march": 1, "penumbra": 1}
+    assert _counts(None, fn) == {"march": 1}
+
+
+def test_lights_of_every_kind_share_one_shadow_march():
+    """Point and directional lights: one scan over what each sends to the point, so one
+    shadow march and one penumbra in the program, whatever the number of kinds."""
+    settings = jr.RenderSettings(shadows="soft")
+    o, d, cone = jnp.array([0.0, 1.0, -5.0]), jnp.array([0.0, 0.0, 1.0]), jnp.zeros(2)
+    one = _counts(settings)
+
+    def fn(scene):
+        scene = eqx.tree_at(lambda s: s.lights, scene,
+                            [jr.PointLight((1.0, 4.0, -2.0), (10.0, 10.0, 10.0)),
+                             jr.DirectionalLight((0.3, 1.0, -0.2), (1.0, 1.0, 1.0)),
+                             jr.PointLight((-1.0, 3.0, -2.0), (5.0, 5.0, 5.0))])
+        return integrator.trace_radiance(scene, o, d, cone, settings)["rgb"]
+
+    assert _counts(settings, fn) == one
+
+
+def test_silhouette_sites_evaluate_the_scene_once_each():
+    """The silhouette estimator's searches (golden section with h(t_c), the projection,
+    the regula falsi with its bracket ends) and f, ∇f, H at the near miss are one copy
+    each; its counts do not depend on newton_steps or spawn_steps."""
+    counts = []
+    for newton, spawn in ((1, 1), (3, 3)):
+        settings = jr.RenderSettings(silhouette=True, max_depth=0, newton_steps=newton,
+                                     spawn_steps=spawn)
+        camera = jr.PerspectiveCamera(eye=(0.0, 1.0, -5.0), target=(0.0, 0.0, 0.0),
+                                      up=(0.0, 1.0, 0.0), fov=40.0, width=8, height=6)
+        from jaxrt import silhouette
+
+        def fn(scene):
+            o, d, cone = camera.generate_ray(4.0, 3.0)
+            out = integrator.trace_radiance(scene, o, d, cone, settings)
+            return silhouette.blend(scene, camera, jnp.array([4.0, 3.0]), out, settings)["rgb"]
+
+        counts.append(_counts(settings, fn))
+    assert counts[0] == counts[1]
+    for site in ("h", "value_and_grad", "project_to_surface", "coverage", "g"):
+        assert counts[0][site] == 1, (site, counts[0])

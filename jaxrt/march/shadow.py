@@ -82,7 +82,7 @@ def march(sdf, origin, wi, t_max, options):
 
     Returns {"t": t* (the sample where s took its minimum; 0 if no sample lowered it
     below 1), "blocked": the ray touched a surface (visibility 0), "sign": −1 if the
-    ray starts inside a solid (f(o) < 0), else 1}.
+    ray starts inside a solid (f(o) < 0), else 1, "f": f(o + t* wi), 0 where t* = 0}.
 
     One loop whose every iteration evaluates f once, at a point its phase chooses
     (`SIGN` … `GOLDEN`): the sign at the origin, the march itself, the sample after the
@@ -153,8 +153,7 @@ def march(sdf, origin, wi, t_max, options):
         new["t_best"] = jnp.where(lower, t, s["t_best"])
         new["lo"] = jnp.where(lower, s["t_prev"], s["lo"])
         new["hi"] = jnp.where(lower, t_next, s["hi"])
-        if refine:
-            new["f_best"] = jnp.where(lower, f, s["f_best"])
+        new["f_best"] = jnp.where(lower, f, s["f_best"])
 
         # END: f at the sample after the last (a ray out of budget).
         new["f_end"] = jnp.where(phase == END, f, s["f_end"])
@@ -168,6 +167,9 @@ def march(sdf, origin, wi, t_max, options):
             new["g1"] = jnp.where(first, g, jnp.where(golden, jnp.where(left, g, s["g2"]), s["g1"]))
             new["x2"] = jnp.where(first, x2, jnp.where(golden, jnp.where(left, s["x1"], x), s["x2"]))
             new["g2"] = jnp.where(second, g, jnp.where(golden, jnp.where(left, s["g1"], g), s["g2"]))
+            # f itself at x1, x2 (the penumbra's value at the refined minimum).
+            new["f1"] = jnp.where(first, f, jnp.where(golden, jnp.where(left, f, s["f2"]), s["f1"]))
+            new["f2"] = jnp.where(second, f, jnp.where(golden, jnp.where(left, s["f1"], f), s["f2"]))
 
         # The next phase: the march while it lasts, then END for a ray out of budget
         # (the march stopped before the light, not yet dark), then the refinement.
@@ -183,11 +185,12 @@ def march(sdf, origin, wi, t_max, options):
     t0 = jnp.maximum(jnp.asarray(eps, dtype), rounding_floor(origin))
     init = dict(phase=jnp.asarray(SIGN, jnp.int32), t=t0, vis=jnp.ones((), dtype),
                 i=jnp.zeros((), jnp.int32), t_prev=t0, f_prev=zero, t_best=zero, lo=t0, hi=t0,
-                sign=jnp.ones((), dtype), f_end=zero)
+                sign=jnp.ones((), dtype), f_end=zero, f_best=zero)
     if refine:
-        init.update(f_best=zero, a=zero, b=zero, x1=zero, g1=zero, x2=zero, g2=zero)
+        init.update(a=zero, b=zero, x1=zero, g1=zero, x2=zero, g2=zero, f1=zero, f2=zero)
     s = jax.lax.while_loop(lambda s: s["phase"] < done_phase, body, init)
     sign, t_best = s["sign"], s["t_best"]
+    f_best = s["f_best"]
     # Out of budget before the light (and not already dark) while still converging on a
     # surface (the distance falling over the last step: it passes close by an
     # occluder): blocked. One that was receding keeps the minimum it found.
@@ -202,4 +205,5 @@ def march(sdf, origin, wi, t_max, options):
         r_g = jnp.minimum(s["g1"], s["g2"])
         better = (t_best > 0.0) & (~blocked) & (r_g < ratio(t_best, s["f_best"], sign))
         t_best = jnp.where(better, t_g, t_best)
-    return {"t": t_best, "blocked": blocked, "sign": sign}
+        f_best = jnp.where(better, jnp.where(s["g1"] < s["g2"], s["f1"], s["f2"]), f_best)
+    return {"t": t_best, "blocked": blocked, "sign": sign, "f": f_best}
