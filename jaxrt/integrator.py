@@ -139,9 +139,8 @@ def _settle(scene, which, x, target, steps):
 def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True, origin=None):
     """Σ_lights f(wo, wi) · E · cos θi · V  +  ambient, at point p with normal n (facing wo).
 
-    The sum runs over the lights in the order of their kinds (one `lax.scan` over what
-    they send to p), the material is evaluated once per kind of material
-    (`bsdf.dispatch`).
+    The sum runs over the lights of each kind in turn (a `lax.scan` over their stacked
+    parameters), the material is evaluated once per kind (`bsdf.dispatch`).
 
     f is the material's BRDF in the local frame of n; E the light's irradiance
     (I / r² for point lights); V the shadow-ray visibility. `colour` turns RGB values
@@ -158,8 +157,8 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
     if not scene.flags("has_diffuse"):
         return radiance
 
-    def step(radiance, incident):
-        wi, dist, irradiance = incident
+    def step(radiance, light):
+        wi, dist, irradiance = light.illuminate(p)
         cos_i = dot(wi, n)
         wi_local = to_local(wi, n)
         f = dispatch(scene.materials, material, lambda m: m.eval(wo_local, wi_local),
@@ -169,17 +168,11 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
         visible = visibility(scene, origin, wi, dist, settings)
         return radiance + jnp.where(lit, colour(f) * colour(irradiance) * cos_i * visible, 0.0), None
 
-    # What each light sends to p, (wi, distance, E): vmapped over the stacked lights of
-    # each kind (point, directional), in the order of the kinds. Then one `lax.scan`
-    # over all of them: one shadow march and one BRDF evaluation in the program,
-    # whatever the number and kinds of lights. Through the tape, so that the shadow
-    # marches' records leave the scan as its outputs.
-    groups = group_by_kind(list(scene.lights))
-    if not groups:
-        return radiance
-    incident = [jax.vmap(lambda light: light.illuminate(p))(stack(lights)) for _, lights in groups]
-    incident = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *incident)
-    radiance, _ = tape.scan(step, radiance, incident)
+    # One `lax.scan` over the stacked lights of each kind (point, directional): one
+    # shadow march per kind in the program, whatever the number of lights. Through the
+    # tape, so that the shadow marches' records leave the scan as its outputs.
+    for _, lights in group_by_kind(list(scene.lights)):
+        radiance, _ = tape.scan(step, radiance, stack(lights))
     return radiance
 
 

@@ -133,23 +133,6 @@ def test_penumbra_reads_the_sign_of_the_march():
     assert _counts(None, fn) == {"march": 1}
 
 
-def test_lights_of_every_kind_share_one_shadow_march():
-    """Point and directional lights: one scan over what each sends to the point, so one
-    shadow march and one penumbra in the program, whatever the number of kinds."""
-    settings = jr.RenderSettings(shadows="soft")
-    o, d, cone = jnp.array([0.0, 1.0, -5.0]), jnp.array([0.0, 0.0, 1.0]), jnp.zeros(2)
-    one = _counts(settings)
-
-    def fn(scene):
-        scene = eqx.tree_at(lambda s: s.lights, scene,
-                            [jr.PointLight((1.0, 4.0, -2.0), (10.0, 10.0, 10.0)),
-                             jr.DirectionalLight((0.3, 1.0, -0.2), (1.0, 1.0, 1.0)),
-                             jr.PointLight((-1.0, 3.0, -2.0), (5.0, 5.0, 5.0))])
-        return integrator.trace_radiance(scene, o, d, cone, settings)["rgb"]
-
-    assert _counts(settings, fn) == one
-
-
 def test_silhouette_sites_evaluate_the_scene_once_each():
     """The silhouette estimator's searches (golden section with h(t_c), the projection,
     the regula falsi with its bracket ends) and f, ∇f, H at the near miss are one copy
