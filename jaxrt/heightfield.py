@@ -17,7 +17,7 @@ change of g; a few safeguarded Newton steps inside that bracket (`refine_steps`)
 the interpolated t accurate to rounding on smooth heights (at a grazing hit linear
 interpolation alone can be off by a good part of a step), then
 `settings.newton_steps` Newton steps from that t, exactly the
-pattern of `jaxrt.trace.newton_step`,
+pattern of `jaxrt.trace.newton_at`,
 
     t* = t̂ − g(t̂) / g'(t̂),   g'(t) = d.y − ∂h/∂x · d.x − ∂h/∂z · d.z  (held constant),
 
@@ -45,7 +45,8 @@ import numpy as np
 from .march import tape
 from .march.heightfield import march as march_heightfield
 from .sdf.base import SDF, as_float
-from .trace import Hit, newton_step, stop_gradient
+from .march.search import repeat
+from .trace import Hit, _slope, newton_at, stop_gradient
 from .vecmath import normalize, safe_div, safe_norm
 
 # ---------------------------------------------------------------------------------------
@@ -286,10 +287,14 @@ class HeightField(SDF):
             march_heightfield, stop_gradient(self), stop_gradient(origin),
             stop_gradient(direction), stop_gradient(cone),
             stop_gradient(jnp.asarray(t_max, origin.dtype)))
-        gap = lambda q: self.gap(q)  # noqa: E731  (an SDF-like callable for newton_step)
-        for _ in range(settings.newton_steps):
-            t_newton = newton_step(gap, origin, direction, t)
-            # Value clamped to the bracket, gradient that of the Newton step.
+        if settings.newton_steps:
+            record = tape.march(lambda *a: _newton_march(*a, settings.newton_steps),
+                                stop_gradient(self), stop_gradient(origin),
+                                stop_gradient(direction), t, hit, t_lo, t_hi)
+            # The last step again, differentiably: value clamped to the bracket, gradient
+            # that of the Newton step (implicit function theorem).
+            gap = lambda q: self.gap(q)  # noqa: E731  (an SDF-like callable for newton_at)
+            t_newton = newton_at(gap, origin, direction, record["t"], record["slope"])
             clamped = jnp.clip(jax.lax.stop_gradient(t_newton), t_lo, t_hi)
             t_newton = t_newton + jax.lax.stop_gradient(clamped - t_newton)
             t = jnp.where(hit, t_newton, t)
@@ -303,3 +308,26 @@ def _is_int(x):
 
 def _is_num(x):
     return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and x == x
+
+
+def _newton_march(field, origin, direction, t, hit, t_lo, t_hi, steps):
+    """`steps` − 1 Newton steps on the gap g(t) from the marched t (no gradient), each
+    clamped to the bracket [t_lo, t_hi], and the slope g'(t) = ∇g · d at the last
+    iterate (0 where it grazes, `trace._slope`): {"t", "slope"}, from
+    which `HeightField.intersect` takes the last step differentiably (`newton_at`).
+    One loop: the program holds one copy of g and ∇g whatever the number of steps."""
+    g_and_grad = jax.value_and_grad(field.gap)
+    zero = jnp.zeros((), t.dtype)
+
+    def body(i, s):
+        t, _, _ = s
+        g, grad = g_and_grad(origin + t * direction)
+        slope, steep = _slope(grad, direction)
+        t_newton = jnp.where(steep, t - safe_div(g, jnp.where(steep, slope, 1.0)), t)
+        clamped = jnp.clip(t_newton, t_lo, t_hi)
+        # The last iteration only measures the slope: its step is `newton_at`'s.
+        t_next = jnp.where(hit & (i < steps - 1), t_newton + (clamped - t_newton), t)
+        return t_next, t, jnp.where(steep, slope, zero)
+
+    _, base, slope = repeat(steps, body, (t, t, zero))
+    return {"t": base, "slope": slope}

@@ -37,6 +37,7 @@ surface as opaque (Whitted 1980: no caustics through glass).
 Kernels handle one camera ray; `render` vmaps them.
 """
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -49,8 +50,9 @@ from .heightfield import HeightField
 from .kinds import group_by_kind, lookup, stack
 from .lights import shadow_ray
 from .march import SphereTracing, tape
-from .trace import hit_epsilon, intersect_plane, sphere_trace, surface_normal
-from .vecmath import dot, safe_div, safe_norm, to_local
+from .march.search import repeat
+from .trace import hit_epsilon, intersect_plane, normal_and_material, sphere_trace
+from .vecmath import dot, safe_div, safe_norm, stop_gradient, to_local
 
 
 def select(values, index):
@@ -109,16 +111,29 @@ def spawn_origin(scene, which, p, n, offset, side, steps=2):
     and side may carry a leading batch axis (several origins from one hit share one
     compiled step).
     """
-    if p.ndim > 1:
-        return jax.vmap(lambda *a: spawn_origin(scene, which, *a, steps=steps))(p, n, offset, side)
-    x0 = p + offset * n
-    x = jax.lax.stop_gradient(x0)
-    f_and_grad = jax.value_and_grad(lambda q: surface_distance(scene, which, q))
-    target = jax.lax.stop_gradient(side * offset)
-    for _ in range(steps):
-        f, g = f_and_grad(x)
-        x = x - safe_div(f - target, dot(g, g)) * g
+    x0 = p + jnp.asarray(offset)[..., None] * n
+    if steps == 0:
+        return x0
+    batched = p.ndim > 1
+    settle = partial(_settle, steps=steps)
+    settle = jax.vmap(settle, (None, None, 0, 0)) if batched else settle
+    # Through the tape: the settled origin is a record (a bounded loop, no gradient).
+    x = tape.march(settle, stop_gradient(scene), which, jax.lax.stop_gradient(x0),
+                   jax.lax.stop_gradient(side * offset))
     return x0 + jax.lax.stop_gradient(x - x0)
+
+
+def _settle(scene, which, x, target, steps):
+    """`steps` Newton steps x ← x − (f(x) − target) ∇f / |∇f|² towards the level set
+    f = target of surface `which` (no gradient): one loop, so that the program holds one
+    copy of f and ∇f whatever `steps`."""
+    f_and_grad = jax.value_and_grad(lambda q: surface_distance(scene, which, q))
+
+    def body(_, x):
+        f, g = f_and_grad(x)
+        return x - safe_div(f - target, dot(g, g)) * g
+
+    return repeat(steps, body, x)
 
 
 def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True, origin=None):
@@ -206,8 +221,7 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     if planes:
         t, found = _meet_planes(planes, origin, direction, t, found, hit.inside, settings, t_max)
     p = origin + t * direction
-    normal = surface_normal(surface, p, settings)
-    material = surface.eval(jax.lax.stop_gradient(p))[1]
+    normal, material = normal_and_material(surface, p, settings)
     which = jnp.zeros((), jnp.int32)
     for k, field in enumerate(scene.heightfields):
         h = field.intersect(origin, direction, settings, cone=cone, t_max=t_max)

@@ -97,17 +97,21 @@ def penumbra(sdf, origin, wi, found, options):
         V = 0 if blocked, 1 if no sample lowered it (t* = 0), else smoothstep(h),
         h = clip(k · sign · f(o + t* wi) / (L t*), 0, 1),
 
-    with t* held fixed (no gradient) and everything else differentiable; the sign
-    (inside a solid) and the Lipschitz factor L carry no gradient.
+    with t* held fixed (no gradient) and everything else differentiable (f's value is
+    the march's, found["f"]: `trace.evaluated`); the sign
+    (inside a solid: found["sign"], which the march measured) and the Lipschitz factor
+    L carry no gradient.
     """
+    from .trace import evaluated
+
     dtype = origin.dtype
-    fixed = stop_gradient(sdf)
-    sign = jnp.where(fixed(stop_gradient(origin)) < 0.0, -1.0, 1.0).astype(dtype)
-    inv_lipschitz = 1.0 / fixed.lipschitz().astype(dtype)
+    sign = jax.lax.stop_gradient(found["sign"]).astype(dtype)  # the march's f(o) < 0
+    inv_lipschitz = 1.0 / stop_gradient(sdf).lipschitz().astype(dtype)
     t = found["t"]
     lowered = t > 0.0
     safe_t = jnp.where(lowered, t, 1.0)
-    d = sign * sdf(origin + safe_t * wi) * inv_lipschitz
+    # f at the minimiser is in the record: evaluated only where differentiated.
+    d = sign * evaluated(sdf, origin + safe_t * wi, found["f"]) * inv_lipschitz
     h = jnp.clip(jnp.asarray(options.penumbra, dtype) * d / safe_t, 0.0, 1.0)
     value = h * h * (3.0 - 2.0 * h)
     return jnp.where(found["blocked"], 0.0, jnp.where(lowered, value, 1.0)).astype(dtype)

@@ -126,9 +126,25 @@ def contour_curvature(sdf, p, direction):
     direction projected on the tangent plane and e = n × v:
     κ_app = II_ee − II_ve² / II_vv (II_ee where |II_vv| is ~0).
     """
-    sdf, p, direction = stop_gradient((sdf, p, direction))
-    grad = jax.grad(lambda q: sdf(q))(p)
-    hess = jax.hessian(lambda q: sdf(q))(p)
+    _, grad, hess = value_grad_hessian(sdf, p)
+    return _curvature(grad, hess, stop_gradient(direction))
+
+
+def value_grad_hessian(sdf, p):
+    """(f, ∇f, H) at p, no gradient: forward-over-reverse (`jax.hessian`), whose inner
+    reverse pass also gives f and ∇f, so the program holds one copy of f for all three."""
+    sdf, p = stop_gradient((sdf, p))
+
+    def value_and_grad(q):
+        f, g = jax.value_and_grad(lambda x: sdf(x))(q)
+        return g, (f, g)
+
+    hess, (f, grad) = jax.jacfwd(value_and_grad, has_aux=True)(p)
+    return f, grad, hess
+
+
+def _curvature(grad, hess, direction):
+    """κ_app of `contour_curvature` from ∇f and the Hessian H at p."""
     g = jnp.sqrt(dot(grad, grad))
     n = normalize(grad)
     v = normalize(direction - dot(direction, n) * n)
@@ -161,9 +177,12 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     dtype = origin.dtype
     t_star = tape.march(refine_closest, sdf, origin, direction, cone, hit)
     p_star = origin + t_star * direction
-    fixed = stop_gradient(sdf)
-    f, grad = jax.value_and_grad(lambda q: fixed(q))(p_star)
-    grad = jax.lax.stop_gradient(grad)
+    # f, ∇f and the Hessian at p* from one evaluation (no gradient); f(p*) then gets the
+    # camera part of its gradient to first order, f + ∇f · (p* − p̂*) (value f, since
+    # p* − p̂* = 0; derivative ∇f · ∂p*, that of f(p*) with the shape held fixed).
+    p_hat = jax.lax.stop_gradient(p_star)
+    f, grad, hess = value_grad_hessian(sdf, p_hat)
+    f = f + dot(grad, p_star - p_hat)
     grad_norm = jnp.sqrt(dot(grad, grad))
     n = normalize(grad)
     radius = jax.lax.stop_gradient(cone[0] + cone[1] * t_star)  # half a pixel at t*
@@ -188,7 +207,7 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     alpha = ramp(safe_div(distance, width * jnp.where(valid, footprint, 1.0)))
     # Offset-curve correction of the gradient: a sample at distance d outside an
     # outline of curvature κ₀ lies on a curve 1 + κ₀ d = 1 / (1 − κ d) times longer.
-    kappa = contour_curvature(sdf, p_star, direction)
+    kappa = _curvature(grad, hess, jax.lax.stop_gradient(direction))
     scale = jax.lax.stop_gradient(jnp.clip(1.0 - distance * kappa, 0.0, 2.0))
     alpha = jax.lax.stop_gradient(alpha) + scale * (alpha - jax.lax.stop_gradient(alpha))
     alpha = jnp.where(valid, alpha, 0.0)

@@ -16,7 +16,10 @@ marched t̂ (held constant),
 has the value of a polished root and, because t̂ and ∇f·d carry no gradient, exactly the
 derivative dt*/dθ = −(∂f/∂θ + ∇f · ∂(o + t d)/∂θ) / (∇f · d) of the design notes.
 `settings.newton_steps` such steps are taken; the gradient is that of the last one, so
-it is evaluated at the second-to-last iterate.
+it is evaluated at the second-to-last iterate. The steps before it run in one bounded
+loop with no gradient (`newton_march`: the program holds one copy of f and ∇f whatever
+the number of steps), and only the last is taken differentiably (`newton_at`: one
+evaluation of f, the slope recorded by the loop).
 
 `settings.root_solver = "optimistix"` polishes instead with `optimistix.root_find`
 (Newton from t̂, `ImplicitAdjoint`, `max_steps = newton_steps`, `throw=False`), whose
@@ -43,6 +46,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from .march import tape
+from .march.search import repeat
 from .march.sphere import SphereTracing, hit_epsilon as hit_epsilon, march as march_sphere
 from .vecmath import dot, normalize, safe_div, safe_sqrt, stop_gradient as stop_gradient
 
@@ -125,27 +129,97 @@ def polish_root(sdf, origin, direction, t, hit, settings):
     """Polish the marched root t̂ of g(t) = f(o + t d) where `hit`, with implicit gradients.
 
     `settings.newton_steps` Newton steps by the rule of `settings.root_solver`:
-    "newton" (`newton_step`, the default) or "optimistix" (`optimistix.root_find`).
+    "newton" (the default) or "optimistix" (`optimistix.root_find`).
     Where not `hit`, and at grazing hits, t̂ is returned with a zero gradient.
 
     Newton steps after the first are kept only while they contract,
     |Δt_k| ≤ |Δt_{k−1}| / 2 (quadratic convergence has set in): a ray that passes
     within ε of a surface without crossing it has a slope ≈ 0 at its closest approach,
     where an unguarded second step would jump arbitrarily far along the ray.
+
+    "newton": the steps run in one bounded loop with no gradient (`newton_march`,
+    through the tape: one copy of f and ∇f whatever newton_steps), which returns the
+    iterate t_j from which the last kept step was taken and the slope ∇f·d there;
+    that step is then taken once more, differentiably (`newton_at`): its value is the
+    loop's last iterate and its gradient the implicit-function derivative of the
+    module docstring, evaluated at t_j.
     """
     if settings.newton_steps == 0:
         return t
     if settings.root_solver == "optimistix":
         return _polish_optimistix(sdf, origin, direction, t, hit, settings.newton_steps)
-    ok, last = hit, None
-    for _ in range(settings.newton_steps):
-        t_new = newton_step(sdf, origin, direction, t)
-        delta = jnp.abs(jax.lax.stop_gradient(t_new - t))
-        if last is not None:
-            ok = ok & (delta <= 0.5 * last)
-        t = jnp.where(ok, t_new, t)
-        last = delta
-    return t
+    steps = settings.newton_steps
+    record = tape.march(lambda *a: newton_march(*a, steps), stop_gradient(sdf),
+                        stop_gradient(origin), stop_gradient(direction),
+                        jax.lax.stop_gradient(t), hit)
+    return newton_at(sdf, origin, direction, record["t"], record["slope"], record["f"])
+
+
+def newton_march(sdf, origin, direction, t, hit, steps):
+    """`steps` guarded Newton steps t ← t − f(o + t d) / (∇f · d) from t̂ (no gradient;
+    the rule of `polish_root`). Returns {"t": the iterate from which the last kept step
+    was taken (t̂ if none was), "slope": ∇f·d there (0 if none was kept, or the hit
+    grazes there), "f": f there (0 if none was kept)}: `newton_at` of the three is the
+    polished root."""
+    f_and_grad = jax.value_and_grad(lambda q: sdf(q))
+    inf = jnp.asarray(jnp.inf, t.dtype)
+    zero = jnp.zeros((), t.dtype)
+
+    def body(i, s):
+        t, ok, last, base, base_slope, base_f = s
+        f, grad = f_and_grad(origin + t * direction)
+        slope, steep = _slope(grad, direction)
+        t_new = jnp.where(steep, t - safe_div(f, jnp.where(steep, slope, 1.0)), t)
+        delta = jnp.abs(t_new - t)
+        ok = ok & ((i == 0) | (delta <= 0.5 * last))
+        base = jnp.where(ok, t, base)
+        base_slope = jnp.where(ok, jnp.where(steep, slope, zero), base_slope)
+        base_f = jnp.where(ok, f, base_f)
+        return jnp.where(ok, t_new, t), ok, delta, base, base_slope, base_f
+
+    _, _, _, base, slope, f = repeat(steps, body, (t, hit, inf, t, zero, zero))
+    return {"t": base, "slope": slope, "f": f}
+
+
+def newton_at(sdf, origin, direction, t, slope, f=None):
+    """One Newton step on g(t) = f(o + t d) from constant t̂ with a given slope s = ∇f·d
+    at t̂ (no gradient): t̂ − f(o + t̂ d) / s, with implicit gradients (module docstring).
+    s = 0 (a grazing hit, or nothing to polish) keeps t̂, with a zero gradient. `f`: the
+    value f(o + t̂ d) where a march has it (`evaluated`: f is then only evaluated where
+    the step is differentiated)."""
+    t0 = jax.lax.stop_gradient(t)
+    slope = jax.lax.stop_gradient(slope)
+    ok = slope != 0.0
+    x = origin + t0 * direction
+    f = sdf(x) if f is None else evaluated(sdf, x, f)
+    return jnp.where(ok, t0 - safe_div(f, jnp.where(ok, slope, 1.0)), t0)
+
+
+def evaluated(fn, x, value):
+    """fn(x) whose value is known (`value`, from a march's record, no gradient): returns
+    `value`, with the derivative of fn at x (its JVP in fn's float leaves and in x).
+
+    A custom JVP: the primal program does not evaluate fn at all (a render without
+    derivatives holds no copy of it); only a derivative traces fn's JVP at x."""
+    dyn, static = eqx.partition((fn, x), eqx.is_inexact_array)
+
+    @jax.custom_jvp
+    def known(dyn, value):
+        return value
+
+    @known.defjvp
+    def known_jvp(primals, tangents):
+        dyn, value = primals
+        d_dyn, _ = tangents
+
+        def apply(dyn):
+            fn, x = eqx.combine(dyn, static)
+            return fn(x)
+
+        _, d_value = jax.jvp(apply, (dyn,), (d_dyn,))
+        return value, d_value.astype(value.dtype)
+
+    return known(dyn, jax.lax.stop_gradient(value))
 
 
 def newton_step(sdf, origin, direction, t):
@@ -208,6 +282,16 @@ def surface_normal(sdf, p, settings):
         k = jnp.array([[1, -1, -1], [-1, -1, 1], [-1, 1, -1], [1, 1, 1]], dtype=p.dtype)
         g = jnp.sum(k * jax.vmap(lambda ki: sdf(p + h * ki))(k)[:, None], axis=0)
     return normalize(g)
+
+
+def normal_and_material(sdf, p, settings):
+    """(`surface_normal(sdf, p, settings)`, the material index at p): with the
+    "autodiff" estimator both come from one evaluation of f (its gradient, and its
+    material as an auxiliary output), so the program holds one copy of f for them."""
+    if settings.normal_mode == "autodiff":
+        g, material = jax.grad(lambda q: sdf.eval(q), has_aux=True)(p)
+        return normalize(g), material
+    return surface_normal(sdf, p, settings), sdf.eval(jax.lax.stop_gradient(p))[1]
 
 
 def intersect_plane(origin, direction, normal, offset):

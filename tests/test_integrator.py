@@ -6,6 +6,7 @@ white furnace, finiteness at every depth, spectral vs RGB, and height fields in 
 import functools
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -163,12 +164,21 @@ def test_recursion_matches_analytic_whitted(depth):
 
 def while_loops(fn, *args):
     """Batch shapes of every `while` in the traced program: one per marched ray batch
-    (the leading carry is the ray parameter t; its shape is the batch)."""
+    (the leading carry is the ray parameter t, or the march's phase; its shape is the
+    batch). The fixed-count loops of `jaxrt.march.search.repeat` (Newton polish, origin
+    settling: the cond is `i < n` on the leading carry i, for a literal n) are not
+    marches and are skipped."""
     shapes = []
+
+    def is_repeat(eqn):
+        cond = eqn.params["cond_jaxpr"].jaxpr
+        return (len(cond.eqns) == 1 and cond.eqns[0].primitive.name == "lt"
+                and cond.eqns[0].invars[0] is cond.invars[eqn.params["cond_nconsts"]]
+                and isinstance(cond.eqns[0].invars[1], jax.extend.core.Literal))
 
     def visit(jaxpr):
         for eqn in jaxpr.eqns:
-            if eqn.primitive.name == "while":
+            if eqn.primitive.name == "while" and not is_repeat(eqn):
                 n_carry = len(eqn.params["body_jaxpr"].jaxpr.outvars)
                 shapes.append(tuple(eqn.invars[-n_carry].aval.shape))
             for param in eqn.params.values():

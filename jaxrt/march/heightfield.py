@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from ..vecmath import safe_div
+from .search import repeat
 from .sphere import rounding_floor
 
 
@@ -84,14 +85,20 @@ def march(field, origin, direction, cone, t_max):
         # `refine_steps` safeguarded Newton steps inside the bracket [t_lo, t_hi]
         # ("rtsafe", Numerical Recipes §9.4): a Newton step that leaves the bracket
         # is replaced by bisection; the bracket shrinks to the sign change.
+        # One loop: the program holds one copy of g and g' whatever refine_steps.
         slope_of = jax.value_and_grad(g_at)
-        for _ in range(field.refine_steps):
+
+        def refine(_, s):
+            t_hit, t_lo, t_hi = s
             g_hit, slope = slope_of(t_hit)
             past = sign * g_hit <= 0.0
             t_lo, t_hi = jnp.where(past, t_lo, t_hit), jnp.where(past, t_hit, t_hi)
             t_newton = t_hit - safe_div(g_hit, slope, jnp.inf)
             ok = (t_newton >= t_lo) & (t_newton <= t_hi)
-            t_hit = jnp.where(ok, t_newton, 0.5 * (t_lo + t_hi))
+            return jnp.where(ok, t_newton, 0.5 * (t_lo + t_hi)), t_lo, t_hi
+
+        if field.refine_steps:
+            t_hit, t_lo, t_hi = repeat(field.refine_steps, refine, (t_hit, t_lo, t_hi))
     else:
         t_hit = t1
     t = jnp.where(hit, t_hit, t_max)

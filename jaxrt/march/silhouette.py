@@ -8,7 +8,7 @@ import jax.numpy as jnp
 
 from ..trace import sphere_trace
 from ..vecmath import dot, normalize, safe_div, stop_gradient
-from .search import repeat as _repeat
+from .search import golden_section, repeat as _repeat
 from .sphere import SphereTracing, rounding_floor
 
 #: Golden-section evaluations that refine the marched near miss: the bracket shrinks
@@ -33,9 +33,6 @@ PROJECT_STEPS = 8
 #: Regula falsi (Illinois) steps that find the inner ray's entry point.
 ILLINOIS_STEPS = 24
 
-_INV_PHI = 0.6180339887498949
-
-
 def refine_closest(sdf, origin, direction, cone, hit):
     """t* minimising f(o + t d) / r(t) in `hit.closest_bracket` (golden section; no gradient).
 
@@ -53,25 +50,9 @@ def refine_closest(sdf, origin, direction, cone, hit):
         return t_c
     a, b = jax.lax.stop_gradient(hit.closest_bracket)
     a, b = jnp.minimum(a, t_c), jnp.maximum(b, t_c)
-
-    def body(_, s):
-        a, b, x1, h1, x2, h2 = s
-        left = h1 < h2  # the minimum lies in [a, x2]
-        a_new = jnp.where(left, a, x1)
-        b_new = jnp.where(left, x2, b)
-        x = jnp.where(left, b_new - _INV_PHI * (b_new - a_new), a_new + _INV_PHI * (b_new - a_new))
-        hx = h(x)
-        x1n = jnp.where(left, x, x2)
-        h1n = jnp.where(left, hx, h2)
-        x2n = jnp.where(left, x1, x)
-        h2n = jnp.where(left, h1, hx)
-        return a_new, b_new, x1n, h1n, x2n, h2n
-
-    x1 = b - _INV_PHI * (b - a)
-    x2 = a + _INV_PHI * (b - a)
-    a, b, x1, h1, x2, h2 = _repeat(GOLDEN_STEPS, body, (a, b, x1, h(x1), x2, h(x2)))
-    t_g = jnp.where(h1 < h2, x1, x2)
-    return jnp.where(jnp.minimum(h1, h2) < h(t_c), t_g, t_c)
+    # One loop evaluates h(t_c) and the golden section's points (one copy of f).
+    t_g, h_g, h_c = golden_section(h, a, b, GOLDEN_STEPS, t0=t_c)
+    return jnp.where(h_g < h_c, t_g, t_c)
 
 
 def project_to_surface(sdf, p, n):
@@ -116,24 +97,30 @@ def inner_hit(sdf, origin, p_s, n_s, radius, settings):
     def g(t):
         return sdf(o + t * aim)
 
-    ga, gb = g(a), g(t_q)
-    found = (~march.inside) & (ga >= 0.0) & (gb < 0.0)
-
-    def body(_, s):
-        a, ga, b, gb, side = s
+    def body(i, s):
+        a, ga, b, gb, side, found = s
         # Regula falsi with the Illinois modification (halve the weight of an end
         # point that is kept twice), which converges superlinearly.
         c = a + safe_div(ga * (b - a), ga - gb, 0.5 * (b - a))
         c = jnp.clip(c, jnp.minimum(a, b), jnp.maximum(a, b))
-        gc = g(c)
+        # One evaluation per iteration: the ends of the bracket g(a), g(t_q) first.
+        gc = g(jnp.where(i == 0, a, jnp.where(i == 1, b, c)))
         outside = gc >= 0.0
         a_new, ga_new = jnp.where(outside, c, a), jnp.where(outside, gc, ga)
         b_new, gb_new = jnp.where(outside, b, c), jnp.where(outside, gb, gc)
         gb_new = jnp.where(outside & (side > 0), 0.5 * gb_new, gb_new)
         ga_new = jnp.where((~outside) & (side < 0), 0.5 * ga_new, ga_new)
-        side = jnp.where(outside, 1, -1).astype(jnp.int32)
-        return a_new, ga_new, b_new, gb_new, side
+        side_new = jnp.where(outside, 1, -1).astype(jnp.int32)
+        stepping = i >= 2
+        ga = jnp.where(i == 0, gc, ga)
+        gb = jnp.where(i == 1, gc, gb)
+        found = jnp.where(i == 1, found & (ga >= 0.0) & (gc < 0.0), found)
+        return (jnp.where(stepping, a_new, a), jnp.where(stepping, ga_new, ga),
+                jnp.where(stepping, b_new, b), jnp.where(stepping, gb_new, gb),
+                jnp.where(stepping, side_new, side), found)
 
-    a, _, _, _, _ = _repeat(ILLINOIS_STEPS, body, (a, ga, t_q, gb, jnp.zeros((), jnp.int32)))
+    zero = jnp.zeros((), dtype)
+    init = (a, zero, t_q, zero, jnp.zeros((), jnp.int32), ~march.inside)
+    a, _, _, _, _, found = _repeat(ILLINOIS_STEPS + 2, body, init)
     # The outside end of the bracket: f ≥ 0 there, within rounding of the root.
     return o + a * aim, aim, found & jnp.isfinite(a)

@@ -84,40 +84,63 @@ def threshold(settings, t, cone, p):
     return jnp.maximum(hit_epsilon(settings, t, cone), rounding_floor(p))
 
 
+#: The phases of the sphere-tracing loop (`march`), one evaluation of f each: the sign
+#: at the origin, the march, the secant finish of a ray out of budget, then done.
+START, MARCH, FINISH, DONE = range(4)
+
+
 def march(sdf, origin, direction, settings, cone, t_max):
     """The bounded sphere-tracing loop of one ray (no gradient); `settings` a `SphereTracing`
-    (or anything with its fields). Returns a dict of `jaxrt.Hit` fields."""
+    (or anything with its fields). Returns a dict of `jaxrt.Hit` fields.
+
+    One loop whose every iteration evaluates f once, at the point its phase chooses
+    (`START`, `MARCH`, `FINISH`): f(o) (which side the ray starts on), the march, and
+    the secant finish of a ray whose budget ran out while approaching a surface. The
+    program holds one copy of f.
+    """
     dtype = origin.dtype
     lipschitz = sdf.lipschitz().astype(dtype)
     inv_lipschitz = 1.0 / lipschitz  # once per ray: a product per step, not a division
     relax = settings.over_relaxation != 1.0  # static: plain sphere tracing needs no fall-back
     omega0 = jnp.asarray(settings.over_relaxation, dtype)
-    start = sdf(origin)
-    sign = jnp.where(start < 0.0, -1.0, 1.0).astype(dtype)
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
     zero = jnp.zeros((), dtype)
-
-    def radius_at(t):
-        return sign * sdf(origin + t * direction) * inv_lipschitz
 
     def ratio_at(t, r):
         # f / r(t): distance in pixel-cone radii (big where the cone has no width).
         return safe_div(r, cone[0] + cone[1] * t, big)
 
-    r0 = sign * start * inv_lipschitz
+    def secant(s):
+        # A ray whose budget ran out while already within the threshold still counts as a
+        # hit. One still approaching a surface is finished: while sphere tracing converges
+        # on a surface its distances fall geometrically, r_{k+1} = q r_k, and the secant
+        # through the last two samples lands where the rest of the series would,
+        # t + r / (1 − q) (grazing rays, with q → 1, are the ones that run out). It is a
+        # hit if the distance there is within the threshold (or below the surface: the
+        # ray crossed it; the Newton polish of `trace.polish_root` then settles it).
+        t, r, done = s["t"], s["r"], s["done"]
+        hit = s["hit"] | ((~done) & (r < threshold(settings, t, cone, origin + t * direction)))
+        t_prev, r_prev = s["last_t"], s["last_r"]
+        approaching = (~done) & (~hit) & (r < r_prev) & (t > t_prev)
+        t_star = t + safe_div(r * (t - t_prev), jnp.where(approaching, r_prev - r, 1.0))
+        t_star = jnp.where(approaching, jnp.minimum(t_star, t_max), t)
+        return hit, approaching, t_star, origin + t_star * direction
+
     # t, r: the current sample (r = |f|/L there); t_prev, r_prev: the previous accepted
     # sample (over-relaxation); last_*: the previous accepted sample for the near-miss
-    # search, last_lo the sample before it; best_*: the nearest near miss so far.
-    init = dict(t=zero, r=r0, steps=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool),
-                hit=jnp.zeros((), bool), last=big, last_t=zero, last_r=r0, last_lo=zero,
-                best=big, best_t=zero, best_r=r0, best_lo=zero, best_hi=zero)
+    # search, last_lo the sample before it; best_*: the nearest near miss so far; start:
+    # f(o), sign: −1 if the ray starts inside (it marches on |f|), f_star: f at the
+    # secant finish. START sets the r's.
+    init = dict(phase=jnp.asarray(START, jnp.int32), start=zero, sign=jnp.ones((), dtype),
+                f_star=zero, t=zero, r=zero, steps=jnp.zeros((), jnp.int32),
+                done=jnp.zeros((), bool), hit=jnp.zeros((), bool), last=big, last_t=zero,
+                last_r=zero, last_lo=zero, best=big, best_t=zero, best_r=zero, best_lo=zero,
+                best_hi=zero)
     if relax:
-        init.update(t_prev=zero, r_prev=r0, omega=omega0)
+        init.update(t_prev=zero, r_prev=zero, omega=omega0)
 
-    def cond(s):
-        return (~s["done"]) & (s["steps"] < settings.max_steps)
-
-    def body(s):
+    def step(s):
+        """The march's step from the sample (t, r): the next state but for its r."""
         t, r = s["t"], s["r"]
         eps = threshold(settings, t, cone, origin + t * direction)
         new = dict(s)
@@ -153,7 +176,6 @@ def march(sdf, origin, direction, settings, cone, t_max):
         escaped = (~is_hit) & (t_next > t_max)
         done = is_hit | escaped
         new["t"] = jnp.where(done, t, t_next)
-        new["r"] = jnp.where(done, r, radius_at(jnp.minimum(new["t"], t_max)))
         if relax:
             new["omega"] = unless_fail(1.0, omega).astype(dtype)
             new["t_prev"] = jnp.where(done, t_prev, unless_fail(t_prev, t))
@@ -163,23 +185,38 @@ def march(sdf, origin, direction, settings, cone, t_max):
         new["hit"] = is_hit
         return new
 
-    s = jax.lax.while_loop(cond, body, init)
-    t, r, done = s["t"], s["r"], s["done"]
-    # A ray whose budget ran out while already within the threshold still counts as a hit.
-    hit = s["hit"] | ((~done) & (r < threshold(settings, t, cone, origin + t * direction)))
-    # One still approaching a surface is finished: while sphere tracing converges on a
-    # surface its distances fall geometrically, r_{k+1} = q r_k, and the secant through
-    # the last two samples lands where the rest of the series would, t + r / (1 − q)
-    # (grazing rays, with q → 1, are the ones that run out). It is a hit if the distance
-    # there is within the threshold (or below the surface: the ray crossed it; the
-    # Newton polish of `trace.polish_root` then settles it).
-    t_prev, r_prev = s["last_t"], s["last_r"]
-    approaching = (~done) & (~hit) & (r < r_prev) & (t > t_prev)
-    t_star = t + safe_div(r * (t - t_prev), jnp.where(approaching, r_prev - r, 1.0))
-    t_star = jnp.where(approaching, jnp.minimum(t_star, t_max), t)
-    x_star = origin + t_star * direction
+    def body(s):
+        phase = s["phase"]
+        marched = step(s)
+        # The one evaluation: f(o), f at the next sample, or f at the secant finish.
+        _, _, _, x_star = secant(s)
+        x = jnp.where(phase == START, origin, jnp.where(
+            phase == FINISH, x_star, origin + jnp.minimum(marched["t"], t_max) * direction))
+        f = sdf(x)
+        sign = jnp.where(phase == START, jnp.where(f < 0.0, -1.0, 1.0).astype(dtype), s["sign"])
+        r = sign * f * inv_lipschitz
+        marched["r"] = jnp.where(marched["done"], s["r"], r)
+        is_march = phase == MARCH
+        new = {k: jnp.where(is_march, marched[k], v) for k, v in s.items()}
+        first = phase == START
+        new["start"] = jnp.where(first, f, s["start"])
+        new["sign"] = sign
+        for k in ("r", "last_r", "best_r") + (("r_prev",) if relax else ()):
+            new[k] = jnp.where(first, r, new[k])
+        new["f_star"] = jnp.where(phase == FINISH, f, s["f_star"])
+        # Next: the march while it lasts; the finish for a ray out of budget approaching
+        # a surface; then done.
+        going = (~new["done"]) & (new["steps"] < settings.max_steps)
+        approaching = secant(new)[1]
+        after = jnp.where(going, MARCH, jnp.where(approaching, FINISH, DONE))
+        new["phase"] = jnp.where(first | is_march, after, DONE).astype(jnp.int32)
+        return new
+
+    s = jax.lax.while_loop(lambda s: s["phase"] < DONE, body, init)
+    t, r, done, sign = s["t"], s["r"], s["done"], s["sign"]
+    hit, approaching, t_star, x_star = secant(s)
     finished = approaching & (t_star < t_max) & (
-        sign * sdf(x_star) * inv_lipschitz < threshold(settings, t_star, cone, x_star))
+        sign * s["f_star"] * inv_lipschitz < threshold(settings, t_star, cone, x_star))
     hit = hit | finished
     t = jnp.where(finished, t_star, t)
     exhausted = (~done) & (~hit)
@@ -196,7 +233,7 @@ def march(sdf, origin, direction, settings, cone, t_max):
         # steps = max_steps + 1 marks a ray that ran out of budget (the `steps` AOV).
         t=jnp.where(hit, t, jnp.asarray(t_max, dtype)), hit=hit,
         steps=s["steps"] + exhausted.astype(jnp.int32),
-        inside=start < 0.0, exhausted=exhausted, closest_t=best_t,
+        inside=s["start"] < 0.0, exhausted=exhausted, closest_t=best_t,
         closest_d=best_r * lipschitz * sign, closest_bracket=jnp.stack([lo, hi]),
         converging=exhausted & approaching,
     )
