@@ -392,6 +392,14 @@ def _strong(tree):
     return jax.tree.map(lambda x: jnp.array(x, dtype=jnp.result_type(x)) if eqx.is_array(x) else x, tree)
 
 
+def _uncommitted(tree):
+    """The tree's arrays copied to uncommitted arrays on the default device: the step's
+    outputs carry the shardings of the programs inside it (a render sharded over views
+    returns NamedShardings), and inputs of other shardings than the first step's would
+    compile the step again (the jit cache key includes the input shardings)."""
+    return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)) if eqx.is_array(x) else x, tree)
+
+
 def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, callback, progress,
                checkpoint, checkpoint_every, refresh=None):
     def step_args(raw):
@@ -425,7 +433,7 @@ def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, ca
                 why = "atol"
                 break
             prev = (raw, state)
-            raw, state, step = new_raw, new_state, step + 1
+            raw, state, step = _uncommitted(new_raw), _uncommitted(new_state), step + 1
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3e}", refresh=False)
