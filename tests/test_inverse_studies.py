@@ -26,7 +26,8 @@ def _script(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["materials", "optics", "pose"] + [
     pytest.param(n, marks=pytest.mark.xfail(
-        reason="quick targets not yet seen met (docs/inverse.md, CSG recovery)", strict=False))
+        reason="quick run (session 6, 2 cores): median error 1.2 % met, max 29 % against the "
+               "inherited 1 % not met (f0, GGX alpha; docs/inverse.md, CSG recovery)", strict=False))
     for n in ("csg",)])
 def test_quick_study_meets_its_quick_targets(name, tmp_path):
     results = _script(name).main(["--quick", "--fresh", "--out", str(tmp_path)])
