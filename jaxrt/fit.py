@@ -303,7 +303,8 @@ class FitProgress(NamedTuple):
 
 
 def fit(loss_fn, params, solver=None, *, args=None, max_steps=256, throw=False, transforms=None,
-        atol=None, callback=None, progress=None, checkpoint=None, checkpoint_every=50):
+        atol=None, callback=None, progress=None, checkpoint=None, checkpoint_every=50,
+        refresh=None):
     """Minimise `loss_fn(params, args)` (a scalar) over `params`; returns a `FitResult`.
 
     `solver`: an optimistix minimiser (default `optimistix.BFGS(rtol=1e-6, atol=1e-9)`),
@@ -322,12 +323,18 @@ def fit(loss_fn, params, solver=None, *, args=None, max_steps=256, throw=False, 
                    written there every `checkpoint_every` steps and at the end
                    (atomically), and a fit started with an existing checkpoint resumes
                    from it, reaching the same iterates as an uninterrupted run.
+      refresh      `refresh(params) -> args`, called with the legal values before
+                   every step (outside the compiled step): the step's loss sees its
+                   result as `args`. For values the loss needs at the current iterate
+                   but does not differentiate, computed by a program of their own: the
+                   forward render of a straight-through estimator (experiments/inverse/
+                   common.py), so that it is not traced into the gradient step.
     """
     if isinstance(solver, optax.GradientTransformation):
         return _fit_optax(loss_fn, params, solver, args, max_steps, transforms, atol, callback,
-                          progress, checkpoint, checkpoint_every)
-    if checkpoint is not None or callback is not None:
-        raise ValueError("`fit(checkpoint=..., callback=...)` need an optax optimiser "
+                          progress, checkpoint, checkpoint_every, refresh)
+    if checkpoint is not None or callback is not None or refresh is not None:
+        raise ValueError("`fit(checkpoint=..., callback=..., refresh=...)` need an optax optimiser "
                          "(an optimistix solver runs as one compiled program)")
     solver = optx.BFGS(rtol=1e-6, atol=1e-9) if solver is None else solver
     raw = unconstrain(params, transforms)
@@ -385,8 +392,19 @@ def _strong(tree):
     return jax.tree.map(lambda x: jnp.array(x, dtype=jnp.result_type(x)) if eqx.is_array(x) else x, tree)
 
 
+def _uncommitted(tree):
+    """The tree's arrays copied to uncommitted arrays on the default device: the step's
+    outputs carry the shardings of the programs inside it (a render sharded over views
+    returns NamedShardings), and inputs of other shardings than the first step's would
+    compile the step again (the jit cache key includes the input shardings)."""
+    return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)) if eqx.is_array(x) else x, tree)
+
+
 def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, callback, progress,
-               checkpoint, checkpoint_every):
+               checkpoint, checkpoint_every, refresh=None):
+    def step_args(raw):
+        return args if refresh is None else refresh(constrain(raw, transforms))
+
     raw = _strong(unconstrain(params, transforms))
     state = _strong(optimiser.init(raw))
     step, history = 0, []
@@ -402,7 +420,8 @@ def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, ca
     why, prev = "max_steps", None
     try:
         while step < max_steps:
-            loss, new_raw, new_state = _optax_step(loss_fn, transforms, optimiser, raw, state, args)
+            loss, new_raw, new_state = _optax_step(loss_fn, transforms, optimiser, raw, state,
+                                                   step_args(raw))
             loss = float(loss)
             if not np.isfinite(loss):  # back to the last iterate with a finite loss
                 why = "non-finite loss"
@@ -414,7 +433,7 @@ def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, ca
                 why = "atol"
                 break
             prev = (raw, state)
-            raw, state, step = new_raw, new_state, step + 1
+            raw, state, step = _uncommitted(new_raw), _uncommitted(new_state), step + 1
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3e}", refresh=False)
@@ -429,7 +448,7 @@ def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, ca
             bar.close()
     value = constrain(raw, transforms)
     # the final loss from the compiled step (its update discarded): no second program
-    loss = _optax_step(loss_fn, transforms, optimiser, raw, state, args)[0]
+    loss = _optax_step(loss_fn, transforms, optimiser, raw, state, step_args(raw))[0]
     history = history[:step] + [float(loss)]
     if checkpoint is not None:
         save_checkpoint(checkpoint, (raw, state), step, history[:step])

@@ -108,6 +108,57 @@ def test_callback_sees_the_loss_history_and_can_stop_the_fit():
     assert np.all(np.diff(result.history) < 0)  # Adam descends on this quadratic
 
 
+def test_refresh_feeds_the_step_values_computed_outside_it():
+    """`refresh(params)` runs before every step on the legal values and the loss sees
+    its result as `args`: a straight-through loss whose forward values come from
+    refresh takes the same iterates as the one computing them inline."""
+    biased = lambda p: p["a"] * 1.1 + 0.0 * p["b"]  # noqa: E731  (the estimator)
+    exact = lambda p: p["a"]  # noqa: E731  (the values the loss should see)
+
+    def inline(p, _):
+        v = biased(p) + jax.lax.stop_gradient(exact(p) - biased(p))
+        return (v - 3.0) ** 2 + 10.0 * (p["b"] - 0.2) ** 2
+
+    def outside(p, values):
+        v = biased(p) + jax.lax.stop_gradient(values - biased(p))
+        return (v - 3.0) ** 2 + 10.0 * (p["b"] - 0.2) ** 2
+
+    seen = []
+
+    def refresh(p):
+        seen.append(float(p["a"]))
+        return exact(p)
+
+    t = {"a": fit.POSITIVE}
+    a = fit.fit(inline, START, fit.adam(0.1, 300), max_steps=300, transforms=t)
+    b = fit.fit(outside, START, fit.adam(0.1, 300), max_steps=300, transforms=t, refresh=refresh)
+    np.testing.assert_allclose(b.history, a.history, rtol=1e-6)
+    assert float(b.params["a"]) == pytest.approx(float(a.params["a"]), rel=1e-6)
+    assert float(b.params["a"]) == pytest.approx(3.0, rel=1e-3)  # the exact values' minimum
+    assert len(seen) == 301 and seen[0] == pytest.approx(1.0)  # every step and the final loss
+    with pytest.raises(ValueError, match="refresh"):
+        fit.fit(outside, START, optx.BFGS(rtol=1e-6, atol=1e-6), refresh=refresh)
+
+
+def test_the_step_compiles_once_when_its_outputs_are_sharded(caplog):
+    """A loss through `shard_map` (as `render_views(devices=...)`) makes the step's
+    outputs NamedSharding arrays; fed back as they are, the second step would compile
+    again. The driver hands uncommitted copies to every step: one compile."""
+    from jax.sharding import Mesh, PartitionSpec as P
+
+    mesh = Mesh(np.asarray(jax.local_devices()[:1]), ("views",))
+
+    def loss(p, _):
+        per_view = jax.shard_map(lambda a, b: jnp.stack([(a - 3.0) ** 2 + 10.0 * (b - 0.2) ** 2]),
+                                 mesh=mesh, in_specs=(P(), P()), out_specs=P("views"))
+        return jnp.sum(per_view(p["a"], p["b"]))
+
+    with jax.log_compiles(True), caplog.at_level("WARNING"):
+        fit.fit(loss, START, fit.adam(0.05), max_steps=5, transforms={"a": fit.POSITIVE})
+    compiles = [r for r in caplog.records if "Compiling jit(_optax_step)" in r.getMessage()]
+    assert len(compiles) == 1, [r.getMessage()[:200] for r in compiles]
+
+
 def test_atol_stops_and_non_finite_losses_keep_the_last_finite_iterate():
     res = fit.fit(_quadratic, START, fit.adam(0.1), max_steps=500, atol=1e-2)
     assert res.result == "atol" and res.converged and float(res.loss) <= 1e-2 and res.steps < 500

@@ -24,11 +24,11 @@ def _script(name):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["materials", "optics"] + [
+@pytest.mark.parametrize("name", ["materials", "optics", "pose"] + [
     pytest.param(n, marks=pytest.mark.xfail(
-        reason="quick targets not yet seen met: the run did not finish on the saturated "
-               "2-core machine in session 4 (issue 13 note)", strict=False))
-    for n in ("csg", "pose")])
+        reason="quick run (session 6, 2 cores): median error 1.2 % met, max 29 % against the "
+               "inherited 1 % not met (f0, GGX alpha; docs/inverse.md, CSG recovery)", strict=False))
+    for n in ("csg",)])
 def test_quick_study_meets_its_quick_targets(name, tmp_path):
     results = _script(name).main(["--quick", "--fresh", "--out", str(tmp_path)])
     for f in OUTPUTS:

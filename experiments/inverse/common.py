@@ -17,7 +17,8 @@ every study:
    point samples) with the gradient of the fit's (silhouette-aware):
    I = I_fit + stop_gradient(I_target(θ) − I_fit), so that the true values are a
    stationary point whatever the silhouette term's dilation (a straight-through
-   estimator; one more forward render per step);
+   estimator; one more forward render per step, by the targets' own compiled program
+   outside the gradient step: `jaxrt.fit.fit(refresh=...)`);
 4. outputs under the output folder: results.json and results.md (every parameter:
    truth, start, fit, error; the metrics and whether they meet their targets; timing
    and machine), curves.png (loss and parameter errors against steps), grid.png (rows
@@ -200,13 +201,17 @@ def run(study, cfg, out, fresh=False):
 
     debias = bool(f.get("debias", False))
 
-    def loss(p, _):
+    def forward(p):  # the target's estimator at p: the targets' own compiled program
+        return jr.render_views(*study.build(p), target_settings, devices=_devices(cfg)).rgb
+
+    def loss(p, truth_like):
         scene, cameras = study.build(p)
         image = jr.render_views(scene, cameras, fit_settings, devices=_devices(cfg)).rgb
-        if debias:  # values of the target's estimator, gradients of the fit's
-            truth_like = jr.render_views(scene, cameras, target_settings, devices=_devices(cfg)).rgb
+        if truth_like is not None:  # values of the target's estimator, gradients of the fit's
             image = image + jax.lax.stop_gradient(truth_like - image)
         return jr.fit.l2_loss(image, targets, weights)
+
+    refresh = forward if debias else None
 
     steps = r["steps"]
     rates = {k: study.rates.get(k, 1.0) for k in study.truth}
@@ -228,12 +233,13 @@ def run(study, cfg, out, fresh=False):
     t1 = time.perf_counter()
     result = jr.fit.fit(loss, start, optimiser, max_steps=steps, transforms=study.transforms,
                         callback=callback, checkpoint=str(checkpoint),
-                        checkpoint_every=f.get("checkpoint_every", 50), progress=True)
+                        checkpoint_every=f.get("checkpoint_every", 50), progress=True,
+                        refresh=refresh)
     t_fit = time.perf_counter() - t1
     fitted = {k: np.asarray(v) for k, v in result.params.items()}
     # the estimator's floor: the fit's loss at the true values (0 without bias)
     loss_truth = float(jr.fit.fit(loss, study.truth, optimiser, max_steps=0,
-                                  transforms=study.transforms).loss)
+                                  transforms=study.transforms, refresh=refresh).loss)
     err = element_errors(fitted, study.truth, study.floors)
     if errors[-1][0] != result.steps:  # a resumed run's last point
         errors.append((result.steps, err))
@@ -247,7 +253,7 @@ def run(study, cfg, out, fresh=False):
     met = {k: bool(metrics[k] <= v) for k, v in cfg["targets"].items() if k in metrics}
 
     # images: start and fit with the target settings (what a viewer compares)
-    start_rgb = jr.render_views(*study.build(start), target_settings, devices=_devices(cfg)).rgb
+    start_rgb = forward(start)
     fit_scene, fit_cameras = study.build(result.params)
     fit_images = jr.render_views(fit_scene, fit_cameras, target_settings, devices=_devices(cfg))
     one = jr.views.view(fit_cameras, 0)
