@@ -156,40 +156,15 @@ def _record(kernel, params, samples, settings, grid, offset):
 def _replay(kernel, params, samples, entries, kinds):
     """The kernel vmapped over all `samples` at once with every march read from `entries`
     (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable."""
-    floats, static = eqx.partition(params, eqx.is_inexact_array)
+    scene, camera = params
+    rays = (*jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1]), samples)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
 
-    def one(floats, xy, entry):
-        scene, camera = eqx.combine(floats, static)
+    def one(ray, entry):
         with tape.replaying(entry):
-            return kernel((*camera.generate_ray(xy[0], xy[1]), xy), scene, camera)
+            return kernel(ray, scene, camera)
 
-    return jax.vmap(one)(_per_ray(floats, samples.shape[0]), samples, entries)
-
-
-def _per_ray(floats, n):
-    """Every leaf of `floats` broadcast to [n, ...], one copy per ray, as a linear map
-    whose transpose sums a *materialised* cotangent: ∂L/∂θ = Σ_i ∂L/∂θ_i over the rays'
-    copies θ_i, the per-ray cotangents ∂L/∂θ_i first written out whole
-    (`lax.optimization_barrier`), then reduced.
-
-    The value and the gradient are those of closing over θ; only the program differs.
-    Closed over, the transpose of the implicit broadcast is a reduction over the rays
-    into which XLA fuses the whole backward computation that produces its input; on a
-    GPU such a reduction to a few outputs (an RGB colour, a 3-vector: a column reduction
-    three wide) keeps most threads idle, and that backward computation ran at a fraction
-    of the machine's rate. Materialised first, it runs as elementwise kernels and the
-    sums read plain arrays: on an H200 the Warp scene's value_and_grad at 2048×1024 went
-    from 8.8 ms to 3.5 ms (experiments/bench/gradients.py, docs/performance.md)."""
-    from jax.custom_derivatives import linear_call
-
-    def broadcast(_, x):
-        return jax.tree_util.tree_map(lambda v: jnp.broadcast_to(v, (n,) + v.shape), x)
-
-    def summed(_, ct):
-        return jax.tree_util.tree_map(lambda c: jnp.sum(c, axis=0), jax.lax.optimization_barrier(ct))
-
-    return linear_call(broadcast, summed, (), floats)
+    return jax.vmap(one)(rays, entries)
 
 
 def replay_image(scene, camera, settings=None):
