@@ -1,5 +1,7 @@
 """render(): the one place that maps the per-ray kernels over the pixels of an image."""
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -155,16 +157,37 @@ def _record(kernel, params, samples, settings, grid, offset):
 
 def _replay(kernel, params, samples, entries, kinds):
     """The kernel vmapped over all `samples` at once with every march read from `entries`
-    (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable."""
-    scene, camera = params
-    rays = (*jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1]), samples)
+    (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable.
+
+    The floats of scene and camera enter the vmap as per-sample copies (`_per_sample`),
+    so the transpose of that broadcast — the sum of every sample's cotangent — is one
+    plain reduction of a materialised [samples, ...] array instead of XLA fusing the
+    whole backward pass into narrow column reductions (on an H200, Warp scene
+    2048×1024: value_and_grad 8.8 → 3.5 ms)."""
+    dyn, static = eqx.partition(params, eqx.is_inexact_array)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
+    n = samples.shape[0]
 
-    def one(ray, entry):
+    def one(d, s, entry):
+        scene, camera = eqx.combine(d, static)
         with tape.replaying(entry):
-            return kernel(ray, scene, camera)
+            return kernel((*camera.generate_ray(s[0], s[1]), s), scene, camera)
 
-    return jax.vmap(one)(rays, entries)
+    per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, n), dyn)
+    return jax.vmap(one)(per_sample, samples, entries)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _per_sample(x, n):
+    """x broadcast to [n, *x.shape]. Its tangent passes an `optimization_barrier`, whose
+    transpose materialises the per-sample cotangent before the sum over samples."""
+    return jnp.broadcast_to(x, (n,) + x.shape)
+
+
+@_per_sample.defjvp
+def _per_sample_jvp(n, primals, tangents):
+    (x,), (t,) = primals, tangents
+    return _per_sample(x, n), jax.lax.optimization_barrier(jnp.broadcast_to(t, (n,) + t.shape))
 
 
 def replay_image(scene, camera, settings=None):
