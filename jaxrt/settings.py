@@ -57,6 +57,14 @@ class KernelOptions:
                          otherwise (`fused.pallas_block`): a 4×8 tile on one warp. On an
                          H100 (Warp scene) 0.431 ms against 0.475 ms for 16×16 tiles on
                          four warps.
+      march_form         the loop form of the marches in the one-ray program of
+                         "fused" and "pallas" (`jaxrt.march.form`): "phases" (one copy
+                         of the scene SDF per march: each march's start, steps and
+                         finish are phases of one loop), "plain" (start before the
+                         loop, finish after it, Newton polish and origin settling as
+                         straight code), or "auto" (default): "plain" on "pallas",
+                         whose warps run each extra phase for their slowest lane,
+                         "phases" on "fused". The "jax" path always takes the phases.
     """
 
     interpret: bool | None = None
@@ -70,6 +78,7 @@ class KernelOptions:
     auto_max_lane_ops_fused: int = 60_000
     auto_max_lane_ops_pallas: int = 10_000
     pallas_block: int = 32
+    march_form: str = "auto"
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -92,6 +101,8 @@ class KernelOptions:
                  "an integer ≥ 0")
         need(_is_int(self.pallas_block) and 16 <= self.pallas_block <= 256, "pallas_block",
              "an integer in [16, 256] (rounded down to a power of two)")
+        need(self.march_form in ("auto", "phases", "plain"), "march_form",
+             '"auto", "phases" or "plain"')
 
     def auto_max_lane_ops(self, backend):
         """The "auto" size limit for the fused `backend` ("fused" or "pallas")."""

@@ -4,7 +4,9 @@ A counting wrapper around the scene's surface counts, at trace time, how often e
 site of the traced program evaluates it (`value_and_grad` and `grad` trace it once):
 that is the number of copies of the scene's code in the compiled program. Loops with a
 static bound (Newton polish, origin settling, golden section) are loops, so the counts
-do not depend on newton_steps, spawn_steps, refine_steps or the step budgets.
+do not depend on newton_steps, spawn_steps, refine_steps or the step budgets. That is
+the "phases" form of the marches (`jaxrt.march.form`, the default); the "plain" form
+(the Pallas kernel's) holds a fixed few copies per march instead (the last test).
 """
 
 import collections
@@ -17,7 +19,7 @@ import pytest
 
 import jaxrt as jr
 from jaxrt import integrator, lights
-from jaxrt.march import shadow, sphere
+from jaxrt.march import form, shadow, sphere
 from jaxrt.sdf.base import SDF
 
 
@@ -154,3 +156,30 @@ def test_silhouette_sites_evaluate_the_scene_once_each():
     assert counts[0] == counts[1]
     for site in ("h", "value_and_grad", "project_to_surface", "coverage", "g"):
         assert counts[0][site] == 1, (site, counts[0])
+
+
+def test_plain_form_holds_a_fixed_few_copies_per_march():
+    """The "plain" form: the sphere march and the soft-shadow march hold f three times
+    each (f(o), the loop's step, the finish: the secant point, the sample after the
+    last), the shadow's golden section three (x1, x2, the loop's step), whatever the
+    budgets; loops of at most `form.PLAIN_UNROLL` iterations are straight code (the
+    Newton polish holds newton_steps copies, the settling spawn_steps), longer ones
+    stay loops (one copy)."""
+    o, wi = jnp.array([0.0, -0.5, -3.0]), jnp.array([0.0, 1.0, 0.0])
+    with form.using("plain"):
+        for budget in (4, 64):
+            for relax in (1.0, 1.6):
+                options = sphere.SphereTracing(max_steps=budget, over_relaxation=relax)
+                fn = lambda s: sphere.march(s.surface, o, wi, options, jnp.zeros(2), 9.0)["t"]  # noqa: E731
+                assert _counts(None, fn) == {"_plain": 3}
+            for refine in (0, 8):
+                options = shadow.SoftShadow(max_steps=budget, refine_steps=refine)
+                fn = lambda s: shadow.march(s.surface, o, wi, jnp.asarray(5.0), options)["t"]  # noqa: E731
+                assert _counts(None, fn) == {"_plain": 3, **({"golden": 3} if refine else {})}
+        for newton, spawn in ((1, 1), (2, 2), (form.PLAIN_UNROLL + 1, 4)):
+            settings = jr.RenderSettings(shadows="soft", newton_steps=newton, spawn_steps=spawn)
+            counts = _counts(settings)
+            polish = newton if newton <= form.PLAIN_UNROLL else 1
+            assert counts == {"_plain": 6, "golden": 3, "newton_march": polish,
+                              "normal_and_material": 1, "surface_distance": spawn}, counts
+    assert form.current() == "phases"

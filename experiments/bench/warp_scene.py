@@ -178,14 +178,14 @@ def main(argv=None):
 
 
 def kernel_options(knobs):
-    """A variant's [kernel] table (num_warps, unroll, fast_math, fma, uniforms) as
+    """A variant's [kernel] table (num_warps, unroll, fast_math, fma, uniforms, march_form) as
     `jaxrt.KernelOptions` (part of RenderSettings, so of the jit cache key); the
     library's choices where the variant says nothing."""
     import jaxrt as jr
 
     keys = {"num_warps": ["pallas_num_warps"], "unroll": ["unroll", "pallas_unroll"],
             "fast_math": ["pallas_fast_math"], "fma": ["pallas_fma"],
-            "uniforms": ["pallas_uniforms"]}
+            "uniforms": ["pallas_uniforms"], "march_form": ["march_form"]}
     return jr.KernelOptions(**{key: value for name, value in knobs.items() for key in keys[name]})
 
 

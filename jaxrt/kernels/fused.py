@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ..march import form as march_form
 from .lanes import Uniforms, Unsupported, eval_lanes, lanes_of, program_size, stack_lanes
 
 __all__ = ["map_samples", "resolve_backend", "Unsupported", "pallas_block", "tile_shape"]
@@ -95,7 +96,7 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
         try:
-            size = program_size(_trace_one(one, dyn, samples.dtype)[0].jaxpr)
+            size = program_size(_trace_one(one, dyn, samples.dtype, settings, backend)[0].jaxpr)
             limit = settings.kernel.auto_max_lane_ops(backend)
             if size > limit:
                 raise Unsupported(
@@ -157,11 +158,13 @@ def resolve_backend(backend):
     return backend
 
 
-def _trace_one(one, dyn, dtype):
-    """The jaxpr of the one-sample program and the pytree of its outputs."""
+def _trace_one(one, dyn, dtype, settings, backend):
+    """The jaxpr of the one-sample program and the pytree of its outputs, its marches
+    in the loop form of `settings.kernel.march_form` on `backend` (`jaxrt.march.form`)."""
     px = jax.ShapeDtypeStruct((), dtype)
     shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
-    closed, out_shapes = jax.make_jaxpr(one, return_shape=True)(shapes, px, px)
+    with march_form.using(march_form.resolve(settings.kernel.march_form, backend)):
+        closed, out_shapes = jax.make_jaxpr(one, return_shape=True)(shapes, px, px)
     return closed, out_shapes
 
 
@@ -170,7 +173,7 @@ def _trace_one(one, dyn, dtype):
 
 def _tiles(one, dyn, samples, settings, grid):
     dtype = samples.dtype
-    closed, out_shapes = _trace_one(one, dyn, dtype)
+    closed, out_shapes = _trace_one(one, dyn, dtype, settings, "fused")
     leaves = jax.tree_util.tree_leaves(dyn)
     out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
     n = samples.shape[0]
@@ -270,7 +273,7 @@ def _pallas(one, dyn, samples, settings, grid, centres=None):
     from jax.experimental import pallas as pl
 
     dtype = samples.dtype
-    closed, out_shapes = _trace_one(one, dyn, dtype)
+    closed, out_shapes = _trace_one(one, dyn, dtype, settings, "pallas")
     leaves, _ = jax.tree_util.tree_flatten(dyn)
     out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
 

@@ -19,8 +19,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from . import form
 from .options import check_options
-from .search import _INV_PHI
+from .search import _INV_PHI, golden_plain
 from .sphere import rounding_floor
 
 #: Largest step of a soft-shadow march, as a fraction of the ray's length (to its light,
@@ -89,8 +90,11 @@ def march(sdf, origin, wi, t_max, options):
     last one of a ray that ran out of budget, and the golden-section refinement of the
     minimum (`search.golden_section`'s steps). The values that the tests after the
     loop need (f at the last sample, at the minimum) are carried in its state, so the
-    program holds one copy of f whatever max_steps and refine_steps.
+    program holds one copy of f whatever max_steps and refine_steps. That is the
+    "phases" form (`jaxrt.march.form`); the "plain" form is `_plain`.
     """
+    if form.current() == "plain":
+        return _plain(sdf, origin, wi, t_max, options)
     dtype = origin.dtype
     k = jnp.asarray(options.penumbra, dtype)
     eps = options.hit_epsilon
@@ -206,4 +210,60 @@ def march(sdf, origin, wi, t_max, options):
         better = (t_best > 0.0) & (~blocked) & (r_g < ratio(t_best, s["f_best"], sign))
         t_best = jnp.where(better, t_g, t_best)
         f_best = jnp.where(better, jnp.where(s["g1"] < s["g2"], s["f1"], s["f2"]), f_best)
+    return {"t": t_best, "blocked": blocked, "sign": sign, "f": f_best}
+
+
+def _plain(sdf, origin, wi, t_max, options):
+    """`march` in the "plain" form: the sign f(o) before the loop, the march's steps
+    alone in it (f at the last sample and at the minimum carried in its state), the
+    sample after the last and the golden section (`search.golden_plain`) after it.
+    The same values as the phases to rounding; five copies of f with refine_steps
+    (the golden section's three), three without."""
+    dtype = origin.dtype
+    k = jnp.asarray(options.penumbra, dtype)
+    eps = options.hit_epsilon
+    inv_lipschitz = 1.0 / sdf.lipschitz().astype(dtype)
+    sign = jnp.where(sdf(origin) < 0.0, -1.0, 1.0).astype(dtype)
+    max_step = jnp.asarray(MAX_STEP_FRACTION, dtype) * t_max
+
+    def cond(s):
+        t, vis, i = s[:3]
+        return (i < options.max_steps) & (t < t_max) & (vis > MIN_VISIBILITY)
+
+    def body(s):
+        t, vis, i, t_prev, f_prev, t_best, lo, hi, f_best = s
+        x = origin + t * wi
+        floor = jnp.maximum(eps, rounding_floor(x))
+        f = sdf(x)
+        d = sign * f * inv_lipschitz
+        h = jnp.clip(k * d / t, 0.0, 1.0)  # t ≥ eps > 0: starts at eps, steps ≥ eps
+        value = h * h * (3.0 - 2.0 * h)
+        t_next = t + jnp.clip(d, floor, jnp.maximum(max_step, floor))
+        lower = value < vis  # the minimum so far, bracketed by the samples around it
+        t_best, lo, hi, f_best = (jnp.where(lower, t, t_best), jnp.where(lower, t_prev, lo),
+                                  jnp.where(lower, t_next, hi), jnp.where(lower, f, f_best))
+        vis = jnp.where(d < floor, 0.0, jnp.minimum(vis, value))
+        return t_next, vis, i + 1, t, f, t_best, lo, hi, f_best
+
+    zero = jnp.zeros((), dtype)
+    t0 = jnp.maximum(jnp.asarray(eps, dtype), rounding_floor(origin))
+    init = (t0, jnp.ones((), dtype), jnp.zeros((), jnp.int32), t0, zero, zero, t0, t0, zero)
+    t_end, vis, _, _, f_last, t_best, lo, hi, f_best = jax.lax.while_loop(cond, body, init)
+    # As in `march`: a ray out of budget while its distance still falls is blocked.
+    ran_out = (t_end < t_max) & (vis > MIN_VISIBILITY)
+    falling = sdf(origin + t_end * wi) * sign < f_last * sign
+    blocked = (vis <= 0.0) | (ran_out & falling)
+    if options.refine_steps:
+        def ratio(t, f):
+            return k * sign * f * inv_lipschitz / jnp.maximum(t, eps)
+
+        def golden(t):
+            f = sdf(origin + t * wi)
+            return ratio(t, f), f
+
+        t_g, r_g, f_g = golden_plain(golden, lo, jnp.minimum(hi, t_max), options.refine_steps,
+                                     aux=True)
+        better = (t_best > 0.0) & (~blocked) & (r_g < ratio(t_best, f_best))
+        t_best = jnp.where(better, t_g, t_best)
+        f_best = jnp.where(better, f_g, f_best)
     return {"t": t_best, "blocked": blocked, "sign": sign, "f": f_best}

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from ..vecmath import safe_div
+from . import form
 from .options import check_options
 
 
@@ -93,10 +94,12 @@ def march(sdf, origin, direction, settings, cone, t_max):
     """The bounded sphere-tracing loop of one ray (no gradient); `settings` a `SphereTracing`
     (or anything with its fields). Returns a dict of `jaxrt.Hit` fields.
 
-    One loop whose every iteration evaluates f once, at the point its phase chooses
-    (`START`, `MARCH`, `FINISH`): f(o) (which side the ray starts on), the march, and
-    the secant finish of a ray whose budget ran out while approaching a surface. The
-    program holds one copy of f.
+    In the "phases" form (`jaxrt.march.form`), one loop whose every iteration evaluates
+    f once, at the point its phase chooses (`START`, `MARCH`, `FINISH`): f(o) (which
+    side the ray starts on), the march, and the secant finish of a ray whose budget ran
+    out while approaching a surface. The program holds one copy of f. In the "plain"
+    form f(o) comes before the loop, the loop only marches, and the secant finish comes
+    after it: three copies of f, no phase logic in the loop.
     """
     dtype = origin.dtype
     lipschitz = sdf.lipschitz().astype(dtype)
@@ -212,11 +215,16 @@ def march(sdf, origin, direction, settings, cone, t_max):
         new["phase"] = jnp.where(first | is_march, after, DONE).astype(jnp.int32)
         return new
 
-    s = jax.lax.while_loop(lambda s: s["phase"] < DONE, body, init)
+    if form.current() == "plain":
+        s, start, f_star = _plain(sdf, origin, direction, settings, init, step, secant,
+                                  inv_lipschitz, t_max)
+    else:
+        s = jax.lax.while_loop(lambda s: s["phase"] < DONE, body, init)
+        start, f_star = s["start"], s["f_star"]
     t, r, done, sign = s["t"], s["r"], s["done"], s["sign"]
     hit, approaching, t_star, x_star = secant(s)
     finished = approaching & (t_star < t_max) & (
-        sign * s["f_star"] * inv_lipschitz < threshold(settings, t_star, cone, x_star))
+        sign * f_star * inv_lipschitz < threshold(settings, t_star, cone, x_star))
     hit = hit | finished
     t = jnp.where(finished, t_star, t)
     exhausted = (~done) & (~hit)
@@ -233,7 +241,32 @@ def march(sdf, origin, direction, settings, cone, t_max):
         # steps = max_steps + 1 marks a ray that ran out of budget (the `steps` AOV).
         t=jnp.where(hit, t, jnp.asarray(t_max, dtype)), hit=hit,
         steps=s["steps"] + exhausted.astype(jnp.int32),
-        inside=s["start"] < 0.0, exhausted=exhausted, closest_t=best_t,
+        inside=start < 0.0, exhausted=exhausted, closest_t=best_t,
         closest_d=best_r * lipschitz * sign, closest_bracket=jnp.stack([lo, hi]),
         converging=exhausted & approaching,
     )
+
+
+def _plain(sdf, origin, direction, settings, init, step, secant, inv_lipschitz, t_max):
+    """The "plain" form of `march`'s loop: f(o) before it, the march's steps alone in
+    it (`step`, then f at the new sample), f at the secant finish after it. Returns
+    (the final state, f(o), f at the secant finish)."""
+    dtype = origin.dtype
+    start = sdf(origin)
+    sign = jnp.where(start < 0.0, -1.0, 1.0).astype(dtype)
+    r0 = sign * start * inv_lipschitz
+    init = {k: v for k, v in init.items() if k not in ("phase", "start", "f_star")}
+    init.update(sign=sign, r=r0, last_r=r0, best_r=r0)
+    if "r_prev" in init:
+        init["r_prev"] = r0
+
+    def body(s):
+        new = step(s)
+        x = origin + jnp.minimum(new["t"], t_max) * direction
+        new["r"] = jnp.where(new["done"], s["r"], sign * sdf(x) * inv_lipschitz)
+        return new
+
+    s = jax.lax.while_loop(lambda s: (~s["done"]) & (s["steps"] < settings.max_steps),
+                           body, init)
+    x_star = secant(s)[3]
+    return s, start, sdf(x_star)
