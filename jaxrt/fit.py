@@ -392,12 +392,28 @@ def _strong(tree):
     return jax.tree.map(lambda x: jnp.array(x, dtype=jnp.result_type(x)) if eqx.is_array(x) else x, tree)
 
 
-def _uncommitted(tree):
-    """The tree's arrays copied to uncommitted arrays on the default device: the step's
-    outputs carry the shardings of the programs inside it (a render sharded over views
-    returns NamedShardings), and inputs of other shardings than the first step's would
-    compile the step again (the jit cache key includes the input shardings)."""
-    return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)) if eqx.is_array(x) else x, tree)
+class _Step:
+    """The compiled step of one fit: `_optax_step` lowered and compiled once, on the
+    first step's arguments, then called as that executable.
+
+    The step's outputs carry the shardings of the programs inside it (a render sharded
+    over views, `render_views(devices=...)`, returns NamedShardings of its mesh), not
+    those of the first step's inputs (uncommitted arrays on the default device). The jit
+    cache keys on input shardings, so feeding the outputs back to `_optax_step` would
+    compile it again on step 2; the compiled executable instead takes any inputs whose
+    shardings are equivalent to those it was compiled for (the same devices, the same
+    layout): step k's outputs are step k+1's inputs as they are, on the device, with no
+    copy through the host. Lowering and compiling share JAX's caches with plain calls of
+    `_optax_step`: a second fit of the same loss and types compiles nothing."""
+
+    def __init__(self, loss_fn, transforms, optimiser):
+        self.statics = (loss_fn, transforms, optimiser)
+        self.compiled = None
+
+    def __call__(self, raw, state, args):
+        if self.compiled is None:
+            self.compiled = _optax_step.lower(*self.statics, raw, state, args).compile()
+        return self.compiled(*self.statics, raw, state, args)
 
 
 def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, callback, progress,
@@ -418,10 +434,10 @@ def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, ca
 
         bar = tqdm(total=max_steps, initial=step, desc="fit", leave=False, dynamic_ncols=True)
     why, prev = "max_steps", None
+    run_step = _Step(loss_fn, transforms, optimiser)
     try:
         while step < max_steps:
-            loss, new_raw, new_state = _optax_step(loss_fn, transforms, optimiser, raw, state,
-                                                   step_args(raw))
+            loss, new_raw, new_state = run_step(raw, state, step_args(raw))
             loss = float(loss)
             if not np.isfinite(loss):  # back to the last iterate with a finite loss
                 why = "non-finite loss"
@@ -433,7 +449,7 @@ def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, ca
                 why = "atol"
                 break
             prev = (raw, state)
-            raw, state, step = _uncommitted(new_raw), _uncommitted(new_state), step + 1
+            raw, state, step = new_raw, new_state, step + 1
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3e}", refresh=False)
@@ -448,7 +464,7 @@ def _fit_optax(loss_fn, params, optimiser, args, max_steps, transforms, atol, ca
             bar.close()
     value = constrain(raw, transforms)
     # the final loss from the compiled step (its update discarded): no second program
-    loss = _optax_step(loss_fn, transforms, optimiser, raw, state, step_args(raw))[0]
+    loss = run_step(raw, state, step_args(raw))[0]
     history = history[:step] + [float(loss)]
     if checkpoint is not None:
         save_checkpoint(checkpoint, (raw, state), step, history[:step])

@@ -143,7 +143,8 @@ def test_refresh_feeds_the_step_values_computed_outside_it():
 def test_the_step_compiles_once_when_its_outputs_are_sharded(caplog):
     """A loss through `shard_map` (as `render_views(devices=...)`) makes the step's
     outputs NamedSharding arrays; fed back as they are, the second step would compile
-    again. The driver hands uncommitted copies to every step: one compile."""
+    again. The driver calls the executable compiled on the first step (`fit._Step`),
+    which takes equivalent shardings: one compile."""
     from jax.sharding import Mesh, PartitionSpec as P
 
     mesh = Mesh(np.asarray(jax.local_devices()[:1]), ("views",))
@@ -157,6 +158,37 @@ def test_the_step_compiles_once_when_its_outputs_are_sharded(caplog):
         fit.fit(loss, START, fit.adam(0.05), max_steps=5, transforms={"a": fit.POSITIVE})
     compiles = [r for r in caplog.records if "Compiling jit(_optax_step)" in r.getMessage()]
     assert len(compiles) == 1, [r.getMessage()[:200] for r in compiles]
+
+
+def test_a_sharded_step_feeds_the_next_on_the_device():
+    """Step k's outputs (NamedShardings of the loss's mesh) are step k+1's inputs as they
+    are: steps 2..5 run with every transfer disallowed (no copy through the host, no
+    reshard), and take the iterates of `fit.fit`."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+    mesh = Mesh(np.asarray(jax.local_devices()[:1]), ("views",))
+
+    def loss(p, _):
+        per_view = jax.shard_map(lambda a, b: jnp.stack([(a - 3.0) ** 2 + 10.0 * (b - 0.2) ** 2]),
+                                 mesh=mesh, in_specs=(P(), P()), out_specs=P("views"))
+        return jnp.sum(per_view(p["a"], p["b"]))
+
+    transforms, opt = {"a": fit.POSITIVE}, fit.adam(0.05)
+    raw = fit._strong(fit.unconstrain(START, transforms))
+    state = fit._strong(opt.init(raw))
+    step = fit._Step(loss, transforms, opt)
+    losses = []
+    value, raw, state = step(raw, state, None)
+    losses.append(value)
+    assert isinstance(raw["a"].sharding, NamedSharding)  # the mesh's, not the inputs'
+    with jax.transfer_guard("disallow"):
+        for _ in range(4):
+            value, raw, state = step(raw, state, None)
+            losses.append(value)
+    want = fit.fit(loss, START, opt, max_steps=5, transforms=transforms)
+    np.testing.assert_allclose([float(v) for v in losses], want.history[:5], rtol=1e-12)
+    for a, b in zip(jax.tree.leaves(fit.constrain(raw, transforms)), jax.tree.leaves(want.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
 
 
 def test_atol_stops_and_non_finite_losses_keep_the_last_finite_iterate():

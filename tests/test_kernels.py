@@ -226,6 +226,38 @@ def test_fused_backend_gradients_are_the_reference_gradients(small_scene):
     np.testing.assert_allclose(g_fused, g_jax, rtol=1e-10)
 
 
+@pytest.mark.slow
+def test_multi_view_gradient_step_runs_the_lanes_and_matches_jax():
+    """value_and_grad of a multi-view image loss (`render_views`: vmapped over the
+    cameras) with backend "auto" runs the lane kernels (no fallback warning: warnings are
+    errors) and equals backend "jax" (float64). A torus and a cylinder: their distances
+    stack 2-vectors, so the normals' and the silhouette's derivatives unstack them (the
+    inverse studies' gradient step failed there; tests/test_lane_rules.py `unstack_*`)."""
+    assert resolve_backend("auto") in ("fused", "pallas")
+    cameras = jr.orbit(2, target=(0.0, 0.3, 0.0), distance=3.0, elevation=[25.0, -10.0],
+                       width=6, height=5)
+    settings = jr.RenderSettings(dtype="float64", silhouette=True, shadows="none", max_steps=48,
+                                 aovs=())
+
+    def loss(p, backend):
+        S = jr.sdf
+        shape = S.Union(S.Translate(S.Torus(p[0], p[1], material=0), (0.0, 0.3, 0.0)),
+                        S.Translate(S.Cylinder(p[2], 0.3, material=0), (0.5, 0.0, 0.2)))
+        scene = jr.Scene(shape, [jr.bsdf.Lambert((0.8, 0.4, 0.2))],
+                         [jr.PointLight((2.0, 4.0, -3.0), (30.0, 30.0, 30.0))], background=0.1)
+        rgb = jr.render_views(scene, cameras, settings.replace(backend=backend)).rgb
+        return jnp.mean((rgb - 0.3) ** 2)
+
+    p = jnp.asarray([0.45, 0.12, 0.15])
+    want_value, want_grad = jax.value_and_grad(loss)(p, "jax")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        value, grad = jax.value_and_grad(loss)(p, "auto")
+    assert np.all(np.asarray(want_grad) != 0.0)
+    np.testing.assert_allclose(float(value), float(want_value), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(grad), np.asarray(want_grad), rtol=1e-6)
+
+
 def eqx_set_radius(scene, radius):
     import equinox as eqx
 

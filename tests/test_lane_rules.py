@@ -75,6 +75,13 @@ RULES = [
     ("slice", "slice", lambda p, a, b: jnp.stack([a, b, a * b, p[0]])[1:3]),
     ("concatenate", "concatenate", lambda p, a, b: jnp.concatenate([jnp.stack([a, b]), p[:2]])),
     ("pad", "pad", lambda p, a, b: jnp.pad(jnp.stack([a, b]), (1, 2), constant_values=p[0])),
+    # a 1-D operand: each result is a 0-d value (the CSG study's gradient step; jax 0.11
+    # also unstacks in `for x in v`), and one of a matrix's rows
+    ("unstack_vector", "unstack", lambda p, a, b: [x * a for x in jnp.unstack(jnp.stack([b, p[0]]))]),
+    ("unstack_one", "unstack",
+     lambda p, a, b: jnp.broadcast_to(jnp.unstack(jnp.stack([a * b]))[0], (2,)) + p[:2]),
+    ("unstack_matrix", "unstack",
+     lambda p, a, b: jnp.unstack(p[:6].reshape(2, 3) * jnp.stack([a, b, a]), axis=1)),
     ("iota", "iota", lambda p, a, b: jnp.arange(4.0) * a),
     ("reduce_sum", "reduce_sum", lambda p, a, b: jnp.sum(jnp.stack([a, b, p[0]]) ** 2)),
     ("reduce_max", "reduce_max", lambda p, a, b: jnp.max(jnp.stack([a, b, p[0]]))),

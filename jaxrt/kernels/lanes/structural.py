@@ -56,8 +56,10 @@ def _stack(eqn, ins, ctx):
 
 
 def _unstack(eqn, ins, ctx):
-    axis = eqn.params["axis"]
-    return [np.take(ins[0], k, axis=axis) for k in range(ins[0].shape[axis])]
+    """x[..., k, ...] along `axis` for every k, each an object array: `[k, ...]` keeps a
+    0-d array where np.take would return the element itself (a bare lane) for a 1-D x."""
+    x = np.moveaxis(ins[0], eqn.params["axis"], 0)
+    return [x[k, ...] for k in range(x.shape[0])]
 
 
 def _split(eqn, ins, ctx):
