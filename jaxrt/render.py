@@ -76,14 +76,14 @@ def _render(scene, camera, settings):
 
 def _vmapped(kernel, params, samples, settings):
     """The "jax" backend: the per-sample program vmapped over rays (in `lax.map` tiles
-    of `settings.batch_size`), differentiated as it is (the reference)."""
+    of `settings.rays_per_tile`), differentiated as it is (the reference)."""
     scene, camera = params
     origins, directions, cones = jax.vmap(camera.generate_ray)(samples[:, 0], samples[:, 1])
     rays = (origins, directions, cones, samples)
-    n = samples.shape[0]
-    if settings.batch_size is None or settings.batch_size >= n:
+    n, tile = samples.shape[0], settings.rays_per_tile(samples.shape[0])
+    if tile >= n:
         return jax.vmap(lambda r: kernel(r, scene, camera))(rays)
-    return jax.lax.map(lambda r: kernel(r, scene, camera), rays, batch_size=settings.batch_size)
+    return jax.lax.map(lambda r: kernel(r, scene, camera), rays, batch_size=tile)
 
 
 def _recorded(kernel, params, samples, settings, grid, offset):
@@ -219,7 +219,7 @@ def _fused(scene, camera, samples, settings, kernel, grid, offset):
     def reference(params, s):
         rays = (*jax.vmap(params[1].generate_ray)(s[:, 0], s[:, 1]), s)
         return jax.lax.map(lambda r: kernel(r, *params), rays,
-                           batch_size=min(settings.batch_size or s.shape[0], s.shape[0]))
+                           batch_size=settings.rays_per_tile(s.shape[0]))
 
     # pixel_samples gives pixel centres at spp 1: the Pallas kernel then computes them
     return map_samples(one, (scene, camera), samples, settings, reference, grid=grid,

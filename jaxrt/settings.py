@@ -10,6 +10,11 @@ _ROOT_SOLVERS = ("newton", "optimistix")
 _RECURSIONS = ("unrolled", "scan")
 _SPLITS = ("columns", "rows")
 AOVS = ("depth", "normal", "albedo", "steps", "coverage")
+#: Rays per tile of `batch_size = "auto"`: on a CPU, tiles that stay in cache; on a GPU,
+#: tiles large enough to fill it (a 480×270 image is one tile) that bound the memory of
+#: very large images.
+CPU_TILE_RAYS = 4096
+GPU_TILE_RAYS = 1 << 18
 
 
 @dataclasses.dataclass(frozen=True)
@@ -176,7 +181,12 @@ class RenderSettings:
     Numerics and execution
       dtype            "float32" (default) or "float64" (needs jax_enable_x64).
       batch_size       rays per tile: tiles are traced one after another and each
-                       stops as soon as its rays are done (None: whole image at once).
+                       stops as soon as its rays are done (None: whole image at once;
+                       "auto", the default: CPU_TILE_RAYS on a CPU, GPU_TILE_RAYS on
+                       a GPU, where tiles run one after another as separate kernel
+                       launches: the showcase at 480×270 with backend "jax" rendered
+                       in 341 ms in tiles of 4096 against 20.5 ms whole, H200,
+                       jax 0.11.2; `rays_per_tile`).
       backend          how the per-ray program is batched: "auto" (default: "pallas" on
                        a GPU, "fused" elsewhere; falls back to "jax", with a one-line
                        warning, for any program that lanes cannot run or that would
@@ -243,7 +253,7 @@ class RenderSettings:
     seed: int = 0
     wavelengths: int = 0
     dtype: str = "float32"
-    batch_size: int | None = 4096
+    batch_size: int | str | None = "auto"
     backend: str = "auto"
     devices: int = 1
     silhouette: bool = False
@@ -305,9 +315,10 @@ class RenderSettings:
         need(_is_int(self.wavelengths) and self.wavelengths >= 0, "wavelengths", "an integer ≥ 0")
         need(self.dtype in _DTYPES, "dtype", f"one of {_DTYPES}")
         need(
-            self.batch_size is None or (_is_int(self.batch_size) and self.batch_size >= 1),
+            self.batch_size is None or self.batch_size == "auto"
+            or (_is_int(self.batch_size) and self.batch_size >= 1),
             "batch_size",
-            "an integer ≥ 1 or None",
+            'an integer ≥ 1, "auto" or None',
         )
         need(isinstance(self.silhouette, bool), "silhouette", "true or false")
         need(self.backend in _BACKENDS, "backend", f"one of {_BACKENDS}")
@@ -328,6 +339,17 @@ class RenderSettings:
                                  f"{[f.name for f in dataclasses.fields(KernelOptions)]}")
             object.__setattr__(self, "kernel", KernelOptions(**self.kernel))
         need(isinstance(self.kernel, KernelOptions), "kernel", "a KernelOptions (or a table of its fields)")
+
+    def rays_per_tile(self, n):
+        """Rays per tile for `n` rays: `batch_size` capped at `n` (None: `n`; "auto":
+        `CPU_TILE_RAYS` on a CPU, `GPU_TILE_RAYS` on a GPU). Read at trace time: the
+        platform is part of every jit cache key already."""
+        b = self.batch_size
+        if b == "auto":
+            import jax
+
+            b = GPU_TILE_RAYS if jax.default_backend() == "gpu" else CPU_TILE_RAYS
+        return n if b is None else min(int(b), n)
 
     def replace(self, **changes):
         """A copy with some dials changed (validated)."""

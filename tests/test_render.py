@@ -171,7 +171,7 @@ BAD_SETTINGS = [
     ("normal_mode", "sobel"), ("normal_epsilon", 0.0), ("shadows", "fuzzy"), ("shadow_steps", 0),
     ("penumbra", -8.0), ("shadow_max_distance", 0.0), ("max_depth", -1), ("max_depth", 17),
     ("ray_offset", 0.0), ("spawn_steps", -1), ("spawn_steps", 1.5), ("spp", 0), ("seed", 0.5), ("wavelengths", -1), ("dtype", "float16"),
-    ("batch_size", 0), ("silhouette", 1), ("aovs", ("rgb",)), ("aovs", ("depth", "depth")),
+    ("batch_size", 0), ("batch_size", "whole"), ("silhouette", 1), ("aovs", ("rgb",)), ("aovs", ("depth", "depth")),
     ("aovs", "depth"),
 ]
 
@@ -194,6 +194,16 @@ def test_aovs_left_out_are_none_and_leave_rgb_unchanged(backend):
     assert some.coverage is None
     np.testing.assert_array_equal(np.asarray(some.rgb), np.asarray(full.rgb))
     np.testing.assert_array_equal(np.asarray(some.depth), np.asarray(full.depth))
+
+
+@pytest.mark.parametrize("platform,auto", [("cpu", 4096), ("gpu", 1 << 18)])
+def test_rays_per_tile_caps_batch_size_at_the_image(monkeypatch, platform, auto):
+    monkeypatch.setattr(jax, "default_backend", lambda: platform)
+    tile = jr.RenderSettings().rays_per_tile  # batch_size "auto", the default
+    assert (tile(10**7), tile(100)) == (auto, 100)
+    assert jr.RenderSettings(batch_size=None).rays_per_tile(10**7) == 10**7
+    assert jr.RenderSettings(batch_size=64).rays_per_tile(10**7) == 64
+    assert jr.RenderSettings(batch_size=64).rays_per_tile(10) == 10
 
 
 def test_every_setting_has_a_documented_default():

@@ -177,7 +177,7 @@ def _tiles(one, dyn, samples, settings, grid):
     leaves = jax.tree_util.tree_leaves(dyn)
     out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
     n = samples.shape[0]
-    tile = tile_shape(min(settings.batch_size or n, n), grid)
+    tile = tile_shape(settings.rays_per_tile(n), grid)
     s = _to_tiles(samples, grid, tile)  # [ty, tx, th, tw, 2]
     ty, tx = s.shape[:2]
     s = s.reshape((ty * tx,) + s.shape[2:])
@@ -208,10 +208,10 @@ def _lane(x):
 
 def pallas_block(settings):
     """Rays per program instance: batch_size (a power of two, 16–256) when it is at most
-    256, else (None, or a CPU-sized tile such as the default 4096)
+    256, else (None, "auto", or a CPU-sized tile such as 4096)
     settings.kernel.pallas_block."""
     b = settings.batch_size
-    b = settings.kernel.pallas_block if b is None or b > 256 else b
+    b = settings.kernel.pallas_block if b in (None, "auto") or b > 256 else b
     return max(16, 1 << (int(b).bit_length() - 1))
 
 
