@@ -68,8 +68,18 @@ class KernelOptions:
                          finish are phases of one loop), "plain" (start before the
                          loop, finish after it, Newton polish and origin settling as
                          straight code), or "auto" (default): "plain" on "pallas",
-                         whose warps run each extra phase for their slowest lane,
-                         "phases" on "fused". The "jax" path always takes the phases.
+                         whose warps run each extra phase for their slowest lane
+                         (but "phases" for plain programs of over plain_max_lane_ops),
+                         "phases" on "fused".
+      plain_max_lane_ops "auto" takes the plain form on "pallas" for one-ray programs
+                         of at most this many lane operations (`lanes.program_size` of
+                         the plain trace). Triton's compile time grows much faster than
+                         the program: on an H200 (jax 0.11.2) the Warp scene's plain
+                         program (3.2k; 2.4k in phases) compiles in about 5 s and
+                         renders 2× faster than its phases; the 64-sphere union of
+                         experiments/bench/gradients.py (9.7k plain, 6.7k in phases)
+                         compiled its forward in 347 s plain (4.4 ms a render at
+                         512×512) against 111 s in phases (4.5 ms). The "jax" path always takes the phases.
     """
 
     interpret: bool | None = None
@@ -84,6 +94,7 @@ class KernelOptions:
     auto_max_lane_ops_pallas: int = 10_000
     pallas_block: int = 32
     march_form: str = "auto"
+    plain_max_lane_ops: int = 5000
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -101,7 +112,7 @@ class KernelOptions:
              "an integer ≥ 1")
         for name in ("materialize", "pallas_fma", "pallas_uniforms", "pallas_fast_math"):
             need(isinstance(getattr(self, name), bool), name, "true or false")
-        for name in ("auto_max_lane_ops_fused", "auto_max_lane_ops_pallas"):
+        for name in ("auto_max_lane_ops_fused", "auto_max_lane_ops_pallas", "plain_max_lane_ops"):
             need(_is_int(getattr(self, name)) and getattr(self, name) >= 0, name,
                  "an integer ≥ 0")
         need(_is_int(self.pallas_block) and 16 <= self.pallas_block <= 256, "pallas_block",

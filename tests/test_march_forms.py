@@ -109,6 +109,44 @@ def test_kernel_option_march_form():
     assert form.current() == "phases"
 
 
+def _pallas_program_sizes(monkeypatch, settings, limit):
+    """Lane-operation counts of the one-ray programs `fused._trace_one` gives for
+    "pallas" (in a render under `jax.eval_shape`, which traces but does not lower the
+    kernel), with `kernel.plain_max_lane_ops = limit`; the last is the kernel's."""
+    from jaxrt.kernels import fused
+
+    sizes = []
+    trace = fused._trace_one
+
+    def traced(*args):
+        closed, out_shapes = trace(*args)
+        sizes.append(fused.program_size(closed.jaxpr))
+        return closed, out_shapes
+
+    monkeypatch.setattr(fused, "_trace_one", traced)
+    jax.clear_caches()  # trace again, also settings that an earlier test rendered
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # "auto" → "pallas"
+    scene, camera, _ = _scene()
+    settings = settings.replace(kernel=settings.kernel.replace(plain_max_lane_ops=limit))
+    jax.eval_shape(lambda p: jr.render(*p, settings).rgb, (scene, camera))
+    return sizes
+
+
+@pytest.mark.parametrize("option", ["auto", "plain"])
+def test_auto_on_pallas_takes_phases_for_plain_programs_over_the_limit(monkeypatch, option):
+    """"auto" runs the plain form on "pallas" up to `plain_max_lane_ops` lane operations
+    and the phases beyond (Triton compiles a large plain program for minutes); an
+    explicit "plain" is kept at any size."""
+    base = jr.RenderSettings(shadows="soft", backend="auto", max_depth=0)
+    kernel = lambda name: base.replace(kernel=base.kernel.replace(march_form=name))  # noqa: E731
+    plain = _pallas_program_sizes(monkeypatch, kernel("plain"), 10**9)[-1]
+    phases = _pallas_program_sizes(monkeypatch, kernel("phases"), 10**9)[-1]
+    assert plain > phases
+    assert _pallas_program_sizes(monkeypatch, kernel(option), plain)[-1] == plain
+    expected = phases if option == "auto" else plain
+    assert _pallas_program_sizes(monkeypatch, kernel(option), plain - 1)[-1] == expected
+
+
 def _scene():
     """A sphere over a floor under a point light: soft shadows (refined), silhouettes."""
     surface = jr.sdf.Union(jr.sdf.Translate(jr.sdf.Sphere(0.8, material=0), offset=(0.0, -0.1, 0.0)),

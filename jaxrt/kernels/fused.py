@@ -160,11 +160,21 @@ def resolve_backend(backend):
 
 def _trace_one(one, dyn, dtype, settings, backend):
     """The jaxpr of the one-sample program and the pytree of its outputs, its marches
-    in the loop form of `settings.kernel.march_form` on `backend` (`jaxrt.march.form`)."""
+    in the loop form of `settings.kernel.march_form` on `backend` (`jaxrt.march.form`;
+    "auto" retraces a plain program of over `kernel.plain_max_lane_ops` lane
+    operations in phases, which Triton compiles much faster)."""
     px = jax.ShapeDtypeStruct((), dtype)
     shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
-    with march_form.using(march_form.resolve(settings.kernel.march_form, backend)):
-        closed, out_shapes = jax.make_jaxpr(one, return_shape=True)(shapes, px, px)
+
+    def trace(form):  # a new function each time: make_jaxpr caches traces by function
+        with march_form.using(form):
+            return jax.make_jaxpr(lambda *a: one(*a), return_shape=True)(shapes, px, px)
+
+    form = march_form.resolve(settings.kernel.march_form, backend)
+    closed, out_shapes = trace(form)
+    if (settings.kernel.march_form == "auto" and form == "plain"
+            and program_size(closed.jaxpr) > settings.kernel.plain_max_lane_ops):
+        closed, out_shapes = trace("phases")
     return closed, out_shapes
 
 
