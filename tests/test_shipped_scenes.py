@@ -126,6 +126,37 @@ def test_the_counters_find_a_speckle_and_a_hole_and_nothing_else():
     assert artefacts.nan_pixels(rgb).sum() == 1
 
 
+def test_a_pixel_dark_by_its_shading_is_no_speckle_and_one_dark_by_its_shadows_is():
+    """`artefacts.speckle_pixels` with the no-shadow reference: of three pixels equally
+    darker than their lit neighbours (Y = 0.01 among 0.6), the one as dark without shadows
+    (shading: a lobe, a facing) is no speckle; the one that is as bright as its
+    neighbours without shadows (acne: its shadow rays took its light) is; the one that
+    is a dark outlier without shadows too (0.05 among 0.6, a surface unlike its
+    neighbours) is no speckle either but counts as `dark_shading`, for a trace to judge.
+    A dark outlier that the shadows darkened by less than half (0.1 of 0.13, no outlier
+    without shadows) is no speckle: its shading took it to the edge of the test."""
+    from jaxrt import artefacts
+
+    h, w = 12, 16
+    rgb = np.full((h, w, 3), 0.6)
+    depth = np.full((h, w), 5.0)
+    hit = artefacts.hit_mask(depth, 100.0)
+    unshadowed = rgb.copy()
+    shading, acne, unlike, partly = (3, 3), (3, 9), (8, 3), (8, 9)
+    for pixel in (shading, acne, unlike):
+        rgb[pixel] = 0.01
+    rgb[partly] = 0.1
+    unshadowed[shading] = 0.01
+    unshadowed[unlike] = 0.05
+    unshadowed[partly] = 0.13
+    assert np.argwhere(artefacts.dark_outliers(rgb, hit)).tolist() == [[3, 3], [3, 9], [8, 3], [8, 9]]
+    assert np.argwhere(artefacts.speckle_pixels(rgb, hit, unshadowed)).tolist() == [list(acne)]
+    assert np.argwhere(artefacts.shading_dark_pixels(rgb, hit, unshadowed)).tolist() == [[3, 3], [8, 3]]
+    image = jr.Image(rgb=rgb, depth=depth)
+    c = artefacts.counts(image, 100.0, unshadowed=unshadowed)
+    assert (c["speckles"], c["dark_outliers"], c["dark_shading"]) == (1, 4, 2), c
+
+
 def _convex_points(shape, scale, rng, count):
     """(sdf, points, outward unit normals) on a sphere or on the side of a cone (the
     showcase's orange cone: radius 0.7, height 1.5), placed as in the showcase."""
