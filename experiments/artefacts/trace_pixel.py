@@ -49,8 +49,8 @@ def trace(path, width, height, x, y, overrides=None, quiet=False, min_weight=0.0
     tree = ray_tree(scene, settings)
     o, d, cone = camera.generate_ray(jnp.asarray(x + 0.5, dtype), jnp.asarray(y + 0.5, dtype))
     say(f"{path} {width}×{height} pixel ({x}, {y}); shadows={settings.shadows}, "
-          f"max_steps={settings.max_steps}, shadow_steps={settings.shadow_steps}, "
-          f"depth={tree.depth}, branches={tree.branches}")
+        f"max_steps={settings.max_steps}, shadow_steps={settings.shadow_steps}, "
+        f"depth={tree.depth}, branches={tree.branches}")
     shade = jax.jit(lambda r, s: shade_ray(scene, r, s, tree, spawn=True), static_argnums=1)
     hit_of = jax.jit(lambda o, d, cone: intersect_scene(scene, o, d, settings, cone=cone))
     total, total_flat = np.zeros(3), np.zeros(3)
@@ -60,14 +60,13 @@ def trace(path, width, height, x, y, overrides=None, quiet=False, min_weight=0.0
         if not bool(ray.alive) or float(jnp.max(ray.weight)) < min_weight:
             return
         pad = "  " * level
-
         h = hit_of(ray.origin, ray.direction, ray.cone)
         out, out_flat = shade(ray, settings), shade(ray, flat)
         total += np.asarray(out.radiance)
         total_flat += np.asarray(out_flat.radiance)
         say(f"{pad}{label}: o={_fmt(ray.origin)} d={_fmt(ray.direction)} weight={_fmt(ray.weight)}")
         say(f"{pad}  hit={bool(h.hit)} t={_fmt(h.t)} steps={_fmt(h.steps)} surface={_fmt(h.surface)} "
-              f"material={_fmt(h.material)} inside={bool(h.inside)} normal={_fmt(h.normal)}")
+            f"material={_fmt(h.material)} inside={bool(h.inside)} normal={_fmt(h.normal)}")
         say(f"{pad}  radiance={_fmt(out.radiance)}  (shadows=none: {_fmt(out_flat.radiance)})")
         if bool(h.hit) and tree.direct:
             lights(ray, h, pad)
@@ -84,7 +83,7 @@ def trace(path, width, height, x, y, overrides=None, quiet=False, min_weight=0.0
                              steps=settings.spawn_steps)
         f_above = scene.surface(above) / scene.surface.lipschitz()
         say(f"{pad}  p={_fmt(p)} f(p)={_fmt(scene.surface(p))} offset={_fmt(offset)} "
-              f"shadow origin={_fmt(above)} f/L there={_fmt(f_above)}")
+            f"shadow origin={_fmt(above)} f/L there={_fmt(f_above)}")
         wo_local = to_local(-ray.direction, n)
         for k, light in enumerate(scene.lights):
             wi, dist, irr = light.illuminate(p)
