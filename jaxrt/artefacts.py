@@ -24,6 +24,12 @@
   although at least 3 of its 4-neighbours hit, and a reference render of the same
   view (more steps, or supersampled) hits there: not a real gap, a camera ray that ran
   out of budget crawling past a silhouette.
+- see-through pixels: a pixel whose camera ray ran out of budget (its steps AOV above
+  max_steps) and whose depth lies beyond the reference's (by more than
+  `SEE_THROUGH_RTOL`): it shows the background or a surface behind the one the
+  reference hits (an exhausted ray that `integrator._meet_planes` carried on to the
+  floor plane, through what lies between). A hole that the outline test misses (its
+  neighbours need not hit) is one of these.
 
 Everything here is numpy on the rendered arrays.
 """
@@ -38,6 +44,9 @@ SPECKLE_FLOOR = 0.05
 #: takes (nearly) all of a light away; a pixel that keeps more is darkened by its
 #: shading, not by its shadow rays.
 SPECKLE_KEEP = 0.5
+#: A see-through pixel's depth exceeds the reference's by more than this, relatively
+#: (the same hit polished from another marched t differs by ~ε/t, far less).
+SEE_THROUGH_RTOL = 1e-3
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -107,11 +116,19 @@ def hole_pixels(hit, reference_hit):
     return outline_candidates(hit) & reference_hit
 
 
-def counts(image, max_distance, reference=None, unshadowed=None):
+def see_through_pixels(depth, reference_depth, exhausted):
+    """Pixels whose camera ray ran out of budget (`exhausted`) and that see farther than
+    the reference: depth > (1 + SEE_THROUGH_RTOL) · reference depth."""
+    depth, reference_depth = np.asarray(depth, np.float64), np.asarray(reference_depth, np.float64)
+    return np.asarray(exhausted) & (depth > (1.0 + SEE_THROUGH_RTOL) * reference_depth)
+
+
+def counts(image, max_distance, reference=None, unshadowed=None, max_steps=None):
     """{"nan", "speckles", "dark_outliers", "outline_candidates"} of an `Image` (its
     depth AOV), with "holes" if `reference` (an `Image` of the same view with more steps
-    or samples) is given, and "dark_shading" if `unshadowed` (the rgb, or an `Image`, of
-    the same view with shadows="none") is: speckles are then judged against it."""
+    or samples) is given, "see_through" if also `max_steps` and the image's steps AOV
+    are, and "dark_shading" if `unshadowed` (the rgb, or an `Image`, of the same view
+    with shadows="none") is: speckles are then judged against it."""
     hit = hit_mask(image.depth, max_distance)
     flat = getattr(unshadowed, "rgb", unshadowed)
     out = dict(nan=int(nan_pixels(image.rgb).sum()),
@@ -121,5 +138,8 @@ def counts(image, max_distance, reference=None, unshadowed=None):
         out["dark_shading"] = int(shading_dark_pixels(image.rgb, hit, flat).sum())
     if reference is not None:
         out["holes"] = int(hole_pixels(hit, hit_mask(reference.depth, max_distance)).sum())
+        if max_steps is not None and getattr(image, "steps", None) is not None:
+            exhausted = np.asarray(image.steps) > max_steps
+            out["see_through"] = int(see_through_pixels(image.depth, reference.depth, exhausted).sum())
     out["outline_candidates"] = int(outline_candidates(hit).sum())
     return out
