@@ -8,7 +8,8 @@ a pixel dark by its shading):
 
     python experiments/artefacts/count.py [W H] [SCENE.toml ...]
 
-Every dark outlier is listed as (row, column) with its luminance, its luminance
+Every see-through pixel (out of budget, deeper than the 8×-steps reference) and every
+dark outlier is listed as (row, column) with its luminance, its luminance
 without shadows and the verdict (speckle or shading); trace one with
 experiments/artefacts/trace_pixel.py SCENE W H COLUMN ROW.
 """
@@ -47,7 +48,7 @@ def main(args):
         img, seconds, fallback = render(scene, camera, settings)
         ref, _, _ = render(scene, camera, settings.replace(max_steps=settings.max_steps * 8))
         flat, _, _ = render(scene, camera, settings.replace(shadows="none"))
-        counts = artefacts.counts(img, settings.max_distance, ref, flat)
+        counts = artefacts.counts(img, settings.max_distance, ref, flat, settings.max_steps)
         hit = artefacts.hit_mask(img.depth, settings.max_distance)
         exhausted = np.asarray(img.steps) > settings.max_steps
         counts["exhausted hits"] = int((exhausted & hit).sum())
@@ -56,6 +57,10 @@ def main(args):
         print(f"{path} {w}×{h}, backend {backend}: {counts} ({seconds:.0f} s)")
         lum, lum0 = artefacts.luminance(img.rgb), artefacts.luminance(flat.rgb)
         speckle = artefacts.speckle_pixels(img.rgb, hit, flat.rgb)
+        seen = artefacts.see_through_pixels(img.depth, ref.depth, exhausted)
+        for y, x in np.argwhere(seen).tolist():
+            print(f"  see-through ({y}, {x}): depth {float(img.depth[y, x]):.4f}, "
+                  f"{float(ref.depth[y, x]):.4f} with 8× the steps")
         for y, x in np.argwhere(artefacts.dark_outliers(img.rgb, hit)).tolist():
             verdict = "speckle" if speckle[y, x] else "shading"
             print(f"  dark outlier ({y}, {x}): Y = {lum[y, x]:.4f}, without shadows "
