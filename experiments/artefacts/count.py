@@ -23,6 +23,7 @@ import numpy as np
 
 import jaxrt as jr
 from jaxrt import artefacts, config
+from jaxrt.kernels.fused import resolve_backend
 
 SCENES = ["jaxrt/data/showcase.toml", "configs/scenes/glass_spheres.toml",
           "configs/scenes/warp_raymarch.toml"]
@@ -53,7 +54,8 @@ def main(args):
         exhausted = np.asarray(img.steps) > settings.max_steps
         counts["exhausted hits"] = int((exhausted & hit).sum())
         counts["exhausted misses"] = int((exhausted & ~hit).sum())
-        backend = f"auto fell back to jax ({fallback})" if fallback else settings.backend
+        backend = (f"{settings.backend} fell back to jax ({fallback})" if fallback
+                   else f"{settings.backend} ({resolve_backend(settings.backend)})")
         print(f"{path} {w}×{h}, backend {backend}: {counts} ({seconds:.0f} s)")
         lum, lum0 = artefacts.luminance(img.rgb), artefacts.luminance(flat.rgb)
         speckle = artefacts.speckle_pixels(img.rgb, hit, flat.rgb)
