@@ -51,6 +51,10 @@ saw them, so `artefacts` counts see-through pixels (out of budget and deeper tha
 8×-steps reference). At 96×54 no shipped scene has one; the cause is open
 (`test_a_ray_out_of_budget_after_a_near_miss_does_not_see_the_floor_through_an_occluder`,
 a strict xfail).
+
+Under this test's non-strict xfail the showcase had never rendered in the tests: with
+jax_enable_x64 on (conftest) its float32 render raised a TypeError (`Plastic.eval` made
+a float64 Fresnel term; tests/test_bsdf_models.py now checks every model's dtype).
 """
 
 from pathlib import Path
@@ -342,8 +346,8 @@ def shipped_counts(path, width=96, height=54, reference_steps=8):
     in the result says which ran). The references are rendered only where they can
     change a count: the holes are judged against a render with `reference_steps`× the
     step budget if some outline candidate or some ray out of budget exists (holes and
-    see-through pixels are among them), the speckles
-    against a render with shadows="none" if some dark outlier exists (likewise)."""
+    see-through pixels are among them), the speckles against a render with
+    shadows="none" if some dark outlier exists (likewise)."""
     import warnings
 
     from jaxrt import artefacts
