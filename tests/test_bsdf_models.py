@@ -265,6 +265,23 @@ def _param_grads(material, wo, wi):
 
 
 @pytest.mark.parametrize("name", NAMES)
+def test_float32_materials_evaluate_in_float32_with_x64_on(name):
+    """A material whose parameters are float32 (as `render` casts them for a float32
+    render) returns float32 values of float32 directions, also with jax_enable_x64 on
+    (conftest): nothing in `eval` makes a float64 array. Plastic built a
+    `DielectricFresnel(eta)` in every evaluation, whose constructor made its eta a
+    float64 array: the float32 showcase (a plastic cylinder) failed to render with x64
+    on (its lights' `lax.scan` carried float32 radiance and returned float64)."""
+    from jaxrt.render import _cast
+
+    material = _cast(MODELS[name][0], jnp.dtype(jnp.float32))
+    wo = _dir(0.4, 0.3).astype(jnp.float32)
+    wi = _dir(0.9, 2.0).astype(jnp.float32)
+    out = jax.eval_shape(material.eval, wo, wi)
+    assert out.dtype == jnp.float32, (name, out.dtype)
+
+
+@pytest.mark.parametrize("name", NAMES)
 def test_check_grads_eval(name):
     material = MODELS[name][0]
     params, static = eqx.partition(material, eqx.is_inexact_array)

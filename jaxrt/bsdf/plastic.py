@@ -6,7 +6,6 @@ import jax.numpy as jnp
 from ._util import above, scalar
 from .base import Material, rgb
 from .cook_torrance import check_geometry, microfacet_specular
-from .fresnel import DielectricFresnel
 from .microfacet import GGX, MicrofacetDistribution
 from .scattering import fresnel_dielectric
 
@@ -44,8 +43,13 @@ class Plastic(Material):
         self.geometry = geometry
 
     def eval(self, wo, wi):
-        spec = microfacet_specular(self.distribution, self.geometry,
-                                   DielectricFresnel(self.eta), wo, wi)
+        # The coat's F is `DielectricFresnel`'s, on self.eta as it is: a DielectricFresnel
+        # built here would convert eta to the default float (float64 with x64 on) and
+        # turn a float32 render's radiance into float64.
+        def coat(cos_theta):
+            return jnp.broadcast_to(fresnel_dielectric(cos_theta, self.eta), (3,))
+
+        spec = microfacet_specular(self.distribution, self.geometry, coat, wo, wi)
         t_o = 1.0 - fresnel_dielectric(wo[2], self.eta)
         t_i = 1.0 - fresnel_dielectric(wi[2], self.eta)
         diff = jnp.where(above(wo, wi), t_o * t_i * self.albedo / jnp.pi, 0.0)
