@@ -2,6 +2,8 @@
 
 import dataclasses
 
+from .xla import XLA_PRESETS
+
 _NORMAL_MODES = ("autodiff", "central", "tetrahedron")
 _SHADOW_MODES = ("none", "hard", "soft")
 _DTYPES = ("float32", "float64")
@@ -70,6 +72,15 @@ class KernelOptions:
                          straight code), or "auto" (default): "plain" on "pallas",
                          whose warps run each extra phase for their slowest lane,
                          "phases" on "fused". The "jax" path always takes the phases.
+      xla                the XLA compiler options of every backend's render program
+                         (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
+                         (on a CPU: the legacy loop emitter instead of XLA's MLIR
+                         fusion emitters, `xla_cpu_use_fusion_emitters = False`, and
+                         LLVM -O1, `xla_backend_optimization_level = 1`; nothing on a
+                         GPU). No fast math: images agree to rounding. The showcase's
+                         compile and render times with each: docs/performance.md. The
+                         `jaxrt render` command uses "fast-compile" on a CPU unless told
+                         otherwise (`jaxrt.cli`).
     """
 
     interpret: bool | None = None
@@ -84,6 +95,7 @@ class KernelOptions:
     auto_max_lane_ops_pallas: int = 10_000
     pallas_block: int = 32
     march_form: str = "auto"
+    xla: str = "default"
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -108,6 +120,8 @@ class KernelOptions:
              "an integer in [16, 256] (rounded down to a power of two)")
         need(self.march_form in ("auto", "phases", "plain"), "march_form",
              '"auto", "phases" or "plain"')
+        need(isinstance(self.xla, str) and self.xla in XLA_PRESETS, "xla",
+             f"one of {sorted(XLA_PRESETS)} (jaxrt.xla.XLA_PRESETS)")
 
     def auto_max_lane_ops(self, backend):
         """The "auto" size limit for the fused `backend` ("fused" or "pallas")."""
