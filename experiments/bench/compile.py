@@ -17,12 +17,12 @@ For each (scene, backend, mode, xla): `lower_s` (trace + lower to StableHLO),
 `compile_s` (XLA, with the compiler options of the `KernelOptions.xla` preset `xla`,
 `jaxrt.xla`), their sum `total_s`, `run_ms` (median of `repeats` calls of the compiled
 program), `eqns` (equations of the traced program, inner jaxprs included: the program
-size that tests/test_union_stack.py counts), `max_diff` and `diff_pixels`: the largest
-absolute difference of the outputs from those of the first preset of the same scene,
-backend and mode (an image; for "grad" the loss and every gradient leaf), and the
-pixels whose rgb differs by more than 1e-3 (render only), and `load`: the 1-minute load
-average when the row was measured. The presets of one (scene, backend, mode) run back to
-back. Caches are cleared before every
+size that tests/test_union_stack.py counts); against the outputs of the first preset of
+the same scene, backend and mode (an image; for "grad" the loss and every gradient
+leaf): `max_diff` (the largest absolute difference), `rel_diff` (‖outputs − first‖ /
+‖first‖, 2-norms over all of them) and `diff_pixels` (render: pixels whose rgb differs
+by more than 1e-3); and `load`, the 1-minute load average when the row was measured.
+The presets of one (scene, backend, mode) run back to back. Caches are cleared before every
 measurement, and JAX's persistent compilation cache is off unless `--cache` is given
 (then `jaxrt.cache` is used where it exists), so compile times are cold ones. On a
 shared machine the times are noisy: compare rows of one run. Writes results.json and
@@ -119,27 +119,32 @@ def _format(row):
     return (f"{row['scene']:>11} {row['backend']:>6} {row['mode']:>6} {row['xla']:>12}"
             f"  lower {row['lower_s']:7.2f} s  compile {row['compile_s']:7.2f} s"
             f"  total {row['total_s']:7.2f} s  run {row['run_ms']:9.1f} ms  eqns {row['eqns']}"
-            f"  max_diff {row['max_diff']:.3g}  diff_pixels {row['diff_pixels']}  load {row['load']}")
+            f"  max_diff {row['max_diff']:.3g} (rel {row['rel_diff']:.3g})"
+            f"  diff_pixels {row['diff_pixels']}  load {row['load']}")
 
 
 def _differences(out, first, mode):
-    """max |out − first| over every output leaf, and (render) the pixels whose rgb
-    differs by more than 1e-3; NaN without outputs (--eqns-only)."""
+    """max |out − first| over every output leaf, `rel_diff` = ‖out − first‖ / ‖first‖
+    over all leaves together (2-norms: gradient leaves differ in scale by decades), and
+    (render) the pixels whose rgb differs by more than 1e-3; NaN without outputs
+    (--eqns-only)."""
     if out is None or first is None:
-        return dict(max_diff=float("nan"), diff_pixels=-1)
+        return dict(max_diff=float("nan"), rel_diff=float("nan"), diff_pixels=-1)
     import jax
 
-    diffs = [float(np.max(np.abs(np.asarray(a, float) - np.asarray(b, float)), initial=0.0))
-             for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(first))]
+    a = np.concatenate([np.ravel(np.asarray(x, float)) for x in jax.tree_util.tree_leaves(out)])
+    b = np.concatenate([np.ravel(np.asarray(x, float)) for x in jax.tree_util.tree_leaves(first)])
     pixels = -1
     if mode == "render":
         pixels = int((np.abs(np.asarray(out) - np.asarray(first)).max(axis=-1) > 1e-3).sum())
-    return dict(max_diff=max(diffs), diff_pixels=pixels)
+    return dict(max_diff=float(np.max(np.abs(a - b), initial=0.0)),
+                rel_diff=float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-30)),
+                diff_pixels=pixels)
 
 
 def _table(rows):
     keys = ["scene", "backend", "mode", "xla", "lower_s", "compile_s", "total_s", "run_ms",
-            "max_diff", "diff_pixels", "load", "eqns"]
+            "max_diff", "rel_diff", "diff_pixels", "load", "eqns"]
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     for r in rows:
         lines.append("| " + " | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k])
