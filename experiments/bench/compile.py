@@ -15,7 +15,9 @@ max_depth from the config).
 
 For each (scene, backend, mode, xla): `lower_s` (trace + lower to StableHLO),
 `compile_s` (XLA, with the compiler options of the `KernelOptions.xla` preset `xla`,
-`jaxrt.xla`), their sum `total_s`, `run_ms` (median of `repeats` calls of the compiled
+`jaxrt.xla`; `compile_cpu_s`: the process's CPU seconds meanwhile, XLA's threads
+included, less sensitive than wall seconds to other jobs on a shared machine), the sum
+of lowering and compiling `total_s`, `run_ms` (median of `repeats` calls of the compiled
 program), `eqns` (equations of the traced program, inner jaxprs included: the program
 size that tests/test_union_stack.py counts); against the outputs of the first preset of
 the same scene, backend and mode (an image; for "grad" the loss and every gradient
@@ -118,6 +120,7 @@ def main(argv=None):
 def _format(row):
     return (f"{row['scene']:>11} {row['backend']:>6} {row['mode']:>6} {row['xla']:>12}"
             f"  lower {row['lower_s']:7.2f} s  compile {row['compile_s']:7.2f} s"
+            f" (cpu {row['compile_cpu_s']:7.2f} s)"
             f"  total {row['total_s']:7.2f} s  run {row['run_ms']:9.1f} ms  eqns {row['eqns']}"
             f"  max_diff {row['max_diff']:.3g} (rel {row['rel_diff']:.3g})"
             f"  diff_pixels {row['diff_pixels']}  load {row['load']}")
@@ -143,7 +146,8 @@ def _differences(out, first, mode):
 
 
 def _table(rows):
-    keys = ["scene", "backend", "mode", "xla", "lower_s", "compile_s", "total_s", "run_ms",
+    keys = ["scene", "backend", "mode", "xla", "lower_s", "compile_s", "compile_cpu_s", "total_s",
+            "run_ms",
             "max_diff", "rel_diff", "diff_pixels", "load", "eqns"]
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     for r in rows:
@@ -212,13 +216,13 @@ def measure(cfg, name, backend, mode, compile_=True, xla="default"):
     if not compile_:
         nan = float("nan")
         return dict(scene=name, backend=backend, mode=mode, xla=xla, lower_s=nan, compile_s=nan,
-                    total_s=nan, run_ms=nan, eqns=eqns, load=_load()), None
+                    compile_cpu_s=nan, total_s=nan, run_ms=nan, eqns=eqns, load=_load()), None
     t0 = time.perf_counter()
     # the options of the renders traced in f (their settings.kernel.xla), as a fit step gets them
     lowered, options = jaxrt_xla.lower_collected(jax.jit(f), dyn)
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     compiled = lowered.compile(compiler_options=options or None)
-    t2 = time.perf_counter()
+    t2, c2 = time.perf_counter(), time.process_time()
     out = jax.block_until_ready(compiled(dyn))
     times = []
     for _ in range(cfg["repeats"]):
@@ -226,7 +230,7 @@ def measure(cfg, name, backend, mode, compile_=True, xla="default"):
         jax.block_until_ready(compiled(dyn))
         times.append(time.perf_counter() - t)
     return dict(scene=name, backend=backend, mode=mode, xla=xla, lower_s=t1 - t0,
-                compile_s=t2 - t1, total_s=t2 - t0, run_ms=1e3 * float(np.median(times)),
+                compile_s=t2 - t1, compile_cpu_s=c2 - c1, total_s=t2 - t0, run_ms=1e3 * float(np.median(times)),
                 eqns=eqns, load=_load()), out
 
 
