@@ -16,12 +16,14 @@ stderr says when compiling starts and when it ends.
 - XLA compiles with `kernel.xla = "fast-compile"` (`CLI_XLA`, `jaxrt.xla`: on a CPU,
   XLA's legacy loop emitter and LLVM -O1; nothing on a GPU) unless the file's
   [settings.kernel] or `--set` names one: a one-shot render pays compile and render
-  once. The showcase at 480×270 (backend auto, i.e. "fused"), 2 shared CPU cores (load
-  3.5–5.7), jax 0.10.2, `--no-cache`, back to back: compile 36.1 s + render 26.4 s
-  (66.5 s wall) against 83.2 s + 23.6 s (111.6 s) with XLA's defaults
-  (`--set kernel.xla=default`), the same image to 2.4e-4 (docs/performance.md, "XLA
-  compiler options"). A program found in the persistent cache pays the render alone,
-  which is about 12 % slower with "fast-compile".
+  once. The showcase at 480×270 (backend auto, i.e. "fused"), 2 shared CPU cores,
+  jax 0.10.2, `--no-cache`, the presets back to back in three runs: compile 36.1 / 46.2 /
+  65.9 s and render 26.4 / 29.8 / 44.4 s with "fast-compile" against 83.2 / 55.5 /
+  174.6 s and 23.6 / 17.5 / 23.6 s with XLA's defaults (`--set kernel.xla=default`):
+  45 s and 88 s less wall time, once 2 s more; 12 % less CPU time in the run that
+  counted it; the same image to 2.4e-4 (docs/performance.md, "XLA compiler options").
+  A program found in the persistent cache pays only the render, which is slower with
+  "fast-compile".
 - The backend is --backend (or --set backend=...), else the file's `settings.backend`,
   else "auto" (the fused lane kernels: on a 2-core CPU the showcase compiles 2.3× and
   renders 5.9× faster than with "jax"; the same image).

@@ -77,13 +77,15 @@ class KernelOptions:
                          (on a CPU: the legacy loop emitter instead of XLA's MLIR
                          fusion emitters, `xla_cpu_use_fusion_emitters = False`, and
                          LLVM -O1, `xla_backend_optimization_level = 1`; nothing on a
-                         GPU). No fast math. The showcase, 2 CPU cores (jax 0.10.2,
-                         96×54): compile 80 → 34 s ("fused"), 91 → 45 s ("jax"),
-                         render +8 % / +80 %; value_and_grad (32×24) compile 456 → 196 s
-                         / 135 → 69 s, its step no slower (docs/performance.md, "XLA
-                         compiler options"). Images agree with "default" to rounding
-                         but where "default" itself is unstable (there). The
-                         `jaxrt render` command uses "fast-compile" unless told
+                         GPU). No fast math. The showcase on 2 shared CPU cores (jax
+                         0.10.2, 96×54): XLA's compile 1.3–2.3× faster in wall seconds
+                         (CPU seconds: 1.55× "fused", 2.1× "jax"), rendering 4–23 %
+                         ("fused") and 6–80 % ("jax") slower; value_and_grad (32×24)
+                         compiled 1.04–2.3× faster, its step −19 % to +35 %
+                         (docs/performance.md, "XLA compiler options"). Images agree
+                         with "default" to rounding except at pixels that "default"
+                         itself renders unstably (there). The `jaxrt render` command
+                         uses "fast-compile" unless told
                          otherwise (`jaxrt.cli`); the library's default stays "default".
     """
 
