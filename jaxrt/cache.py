@@ -86,7 +86,9 @@ def compile_render_cached(scene, camera, settings, folder=None):
     the render program (`jax.export`, after tracing and lowering it) to
     `folder/programs/<program_key>.bin`; a later call for a scene of the same structure
     reads it back and skips tracing, and with the compilation cache on, XLA's compile
-    too. Returns `(f(scene, camera) -> Image, reused)`.
+    too. XLA compiles it with the options of `settings.kernel.xla` (`jaxrt.xla`; the
+    settings are part of the key, the options part of XLA's cache key). Returns
+    `(f(scene, camera) -> Image, reused)`.
 
     Anything the export cannot hold (a Pallas kernel on some backends, a pytree it cannot
     flatten) falls back to `render.compile_render` (reused False), so this is never worse
@@ -95,6 +97,8 @@ def compile_render_cached(scene, camera, settings, folder=None):
     import importlib
 
     import jax
+
+    from . import xla
 
     render_module = importlib.import_module("jaxrt.render")  # the module, not jaxrt.render()
     folder = Path(folder) if folder is not None else default_path()
@@ -112,7 +116,8 @@ def compile_render_cached(scene, camera, settings, folder=None):
 
     def call_with(exported):
         """The exported program compiled (from XLA's cache when it is on), not run."""
-        call = jax.jit(exported.call).lower(*specs).compile()
+        options = xla.compiler_options(settings)
+        call = jax.jit(exported.call).lower(*specs).compile(compiler_options=options or None)
 
         def run(scene, camera):
             flat = jax.tree_util.tree_leaves(render_module._cast((scene, camera), dtype))

@@ -12,6 +12,18 @@ stderr says when compiling starts and when it ends.
 - `--set KEY=VALUE` sets any `RenderSettings` field (repeatable); VALUE is a TOML value
   (`--set max_steps=256 --set shadows=soft --set aovs=[]`; a bare word is a string) and is
   checked as the file's [settings] are. It wins over the file and over --spp.
+  `--set kernel.FIELD=VALUE` sets one `KernelOptions` field, keeping the file's others.
+- XLA compiles with `kernel.xla = "fast-compile"` (`CLI_XLA`, `jaxrt.xla`: on a CPU,
+  XLA's legacy loop emitter and LLVM -O1; nothing on a GPU) unless the file's
+  [settings.kernel] or `--set` names one: a one-shot render pays compile and render
+  once. The showcase at 480×270 (backend auto, i.e. "fused"), 2 shared CPU cores,
+  jax 0.10.2, `--no-cache`, the presets back to back in three runs: compile 36.1 / 46.2 /
+  65.9 s and render 26.4 / 29.8 / 44.4 s with "fast-compile" against 83.2 / 55.5 /
+  174.6 s and 23.6 / 17.5 / 23.6 s with XLA's defaults (`--set kernel.xla=default`):
+  45 s and 88 s less wall time, once 2 s more; 12 % less CPU time in the run that
+  counted it; the same image to 2.4e-4 (docs/performance.md, "XLA compiler options").
+  A program found in the persistent cache pays only the render, which is slower with
+  "fast-compile".
 - The backend is --backend (or --set backend=...), else the file's `settings.backend`,
   else "auto" (the fused lane kernels: on a 2-core CPU the showcase compiles 2.3× and
   renders 5.9× faster than with "jax"; the same image).
@@ -34,6 +46,10 @@ import time
 import tomllib
 from importlib import resources
 from pathlib import Path
+
+#: `KernelOptions.xla` of `jaxrt render` when neither the file nor `--set` names one
+#: (the module docstring gives the measured trade).
+CLI_XLA = "fast-compile"
 
 #: Exit statuses.
 EXIT_USAGE = 2  # a bad config, setting or argument: nothing was done
@@ -106,25 +122,37 @@ class _Failure(Exception):
 
 def parse_overrides(items):
     """`--set KEY=VALUE` items -> {KEY: value}, VALUE read as a TOML value (a bare word
-    that is not TOML is a string). Raises `_Failure` for a malformed item or a KEY that
-    is not a `RenderSettings` field."""
-    from .settings import RenderSettings
+    that is not TOML is a string). KEY is a `RenderSettings` field, or `kernel.FIELD` for
+    one field of `KernelOptions` (gathered into {"kernel": {FIELD: value}}). Raises
+    `_Failure` for a malformed item or an unknown KEY."""
+    from .settings import KernelOptions, RenderSettings
 
     fields = [f.name for f in dataclasses.fields(RenderSettings)]
+    kernel_fields = [f.name for f in dataclasses.fields(KernelOptions)]
     out = {}
     for item in items:
         key, eq, text = item.partition("=")
         key = key.strip()
         if not eq or not key:
             raise _Failure(f"--set {item}: expected KEY=VALUE, KEY a RenderSettings field", EXIT_USAGE)
-        if key not in fields:
-            raise _Failure(f"--set {item}: unknown setting `{key}`, expected one of {', '.join(fields)}",
-                           EXIT_USAGE)
+        head, dot, sub = key.partition(".")
+        if dot and head == "kernel" and sub not in kernel_fields:
+            raise _Failure(f"--set {item}: unknown kernel option `{sub}`, expected one of "
+                           f"{', '.join(kernel_fields)}", EXIT_USAGE)
+        if (dot and head != "kernel") or (not dot and key not in fields):
+            raise _Failure(f"--set {item}: unknown setting `{key}`, expected one of {', '.join(fields)} "
+                           "(or kernel.FIELD)", EXIT_USAGE)
         try:
             value = tomllib.loads(f"value = {text.strip()}")["value"]
         except tomllib.TOMLDecodeError:
             value = text.strip()
-        out[key] = value
+        if dot:
+            kernel = out.setdefault("kernel", {})
+            if not isinstance(kernel, dict):
+                raise _Failure(f"--set {item}: `kernel` was set to {kernel!r} already", EXIT_USAGE)
+            kernel[sub] = value
+        else:
+            out[key] = value
     return out
 
 
@@ -142,6 +170,7 @@ def _render(args):
         if args.spp is not None:
             overrides.setdefault("spp", args.spp)
         config.check_settings(overrides, "--set")
+        overrides = _with_cli_xla(overrides, file_settings)
         if {**file_settings, **overrides}.get("dtype") == "float64":
             import jax
 
@@ -165,7 +194,7 @@ def _render(args):
     from .render import compile_render
 
     print(f"jaxrt: rendering {path} at {camera.width}×{camera.height}, {settings.spp} spp, "
-          f"backend {settings.backend}")
+          f"backend {settings.backend}, xla {settings.kernel.xla}")
     sys.stdout.flush()
     print("jaxrt: compiling…", file=sys.stderr, flush=True)
     start = time.perf_counter()
@@ -195,6 +224,19 @@ def _render(args):
         raise _Failure(str(e), EXIT_FAILED) from None
     print(f"jaxrt: wrote {exr} and {png}")
     return 0
+
+
+def _with_cli_xla(overrides, file_settings):
+    """`overrides` with `kernel.xla = CLI_XLA` unless the file's [settings.kernel] or
+    `--set` names one; the file's other kernel options are kept (an override's `kernel`
+    table replaces the file's, so it carries them)."""
+    file_kernel = file_settings.get("kernel", {})
+    kernel = overrides.get("kernel", {})
+    if not isinstance(file_kernel, dict) or not isinstance(kernel, dict):
+        return overrides  # a malformed table: config reports it
+    if "xla" in kernel or "xla" in file_kernel:
+        return overrides
+    return {**overrides, "kernel": {**file_kernel, **kernel, "xla": CLI_XLA}}
 
 
 def format_rate(x):

@@ -42,6 +42,8 @@ import numpy as np
 import optax
 import optimistix as optx
 
+from . import xla
+
 
 # --------------------------------------------------------------------------- losses
 
@@ -338,8 +340,9 @@ def fit(loss_fn, params, solver=None, *, args=None, max_steps=256, throw=False, 
                          "(an optimistix solver runs as one compiled program)")
     solver = optx.BFGS(rtol=1e-6, atol=1e-9) if solver is None else solver
     raw = unconstrain(params, transforms)
-    start = _loss(loss_fn, transforms, raw, args)
-    solution = _minimise(loss_fn, transforms, solver, raw, args, max_steps, throw)
+    start = xla.call_collected(_loss, loss_fn, transforms, raw, args)
+    solution = xla.call_collected(_minimise, loss_fn, transforms, solver, raw, args, max_steps,
+                                  throw)
     value = constrain(solution.value, transforms)
     loss = loss_fn(value, args)
     return FitResult(value, loss, int(solution.stats["num_steps"]), solution.result,
@@ -353,7 +356,8 @@ def fit_least_squares(residual_fn, params, solver=None, *, args=None, max_steps=
     `fit`. The loss reported is the mean squared residual."""
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9) if solver is None else solver
     raw = unconstrain(params, transforms)
-    solution = _least_squares(residual_fn, transforms, solver, raw, args, max_steps, throw)
+    solution = xla.call_collected(_least_squares, residual_fn, transforms, solver, raw, args,
+                                  max_steps, throw)
     value = constrain(solution.value, transforms)
     r = residual_fn(value, args)
     loss = jnp.mean(r * r)
@@ -404,7 +408,9 @@ class _Step:
     shardings are equivalent to those it was compiled for (the same devices, the same
     layout): step k's outputs are step k+1's inputs as they are, on the device, with no
     copy through the host. Lowering and compiling share JAX's caches with plain calls of
-    `_optax_step`: a second fit of the same loss and types compiles nothing."""
+    `_optax_step`: a second fit of the same loss and types compiles nothing. XLA compiles
+    it with the options of the renders traced in the loss (their
+    `RenderSettings.kernel.xla`; `jaxrt.xla.compile_collected`)."""
 
     def __init__(self, loss_fn, transforms, optimiser):
         self.statics = (loss_fn, transforms, optimiser)
@@ -412,7 +418,7 @@ class _Step:
 
     def __call__(self, raw, state, args):
         if self.compiled is None:
-            self.compiled = _optax_step.lower(*self.statics, raw, state, args).compile()
+            self.compiled = xla.compile_collected(_optax_step, *self.statics, raw, state, args)
         return self.compiled(*self.statics, raw, state, args)
 
 

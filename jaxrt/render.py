@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from . import sharding, silhouette
+from . import sharding, silhouette, xla
 from .camera import pixel_samples
 from .integrator import trace_radiance
 from .kernels.fused import resolve_backend
@@ -39,12 +39,14 @@ def render(scene, camera, settings=None):
     """Render `scene` through `camera`; returns an `Image`.
 
     Compiled once per scene *structure* and settings: changing parameter values (any
-    float in the scene or camera) reuses the compiled program.
+    float in the scene or camera) reuses the compiled program. The program is compiled
+    with the XLA options of `settings.kernel.xla` (`jaxrt.xla`); inside a larger traced
+    program (a jitted loss, a fit step) those are the outer program's to pass.
     """
     settings = RenderSettings() if settings is None else settings
     dtype = _dtype(settings)
     scene, camera = _cast((scene, camera), dtype)
-    return _render(scene, camera, settings)
+    return xla.jitted(_render, settings)(scene, camera, settings)
 
 
 @eqx.filter_jit
@@ -247,9 +249,12 @@ def _cast(tree, dtype):
 
 
 def compile_render(scene, camera, settings=None):
-    """Compile ahead of time; returns `f(scene, camera) -> Image` for scenes of this
-    structure (used to report compile and render time apart)."""
+    """Compile ahead of time (with the XLA options of `settings.kernel.xla`); returns
+    `f(scene, camera) -> Image` for scenes of this structure (used to report compile and
+    render time apart)."""
     settings = RenderSettings() if settings is None else settings
     dtype = _dtype(settings)
-    compiled = _render.lower(*_cast((scene, camera), dtype), settings).compile()
+    options = xla.compiler_options(settings)
+    compiled = _render.lower(*_cast((scene, camera), dtype), settings).compile(
+        compiler_options=options or None)
     return lambda scene, camera: compiled(*_cast((scene, camera), dtype), settings)

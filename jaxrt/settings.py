@@ -2,6 +2,8 @@
 
 import dataclasses
 
+from .xla import XLA_PRESETS
+
 _NORMAL_MODES = ("autodiff", "central", "tetrahedron")
 _SHADOW_MODES = ("none", "hard", "soft")
 _DTYPES = ("float32", "float64")
@@ -70,7 +72,7 @@ class KernelOptions:
                          straight code), or "auto" (default): "plain" on "pallas",
                          whose warps run each extra phase for their slowest lane
                          (but "phases" for plain programs of over plain_max_lane_ops),
-                         "phases" on "fused".
+                         "phases" on "fused". The "jax" path always takes the phases.
       plain_max_lane_ops "auto" takes the plain form on "pallas" for one-ray programs
                          of at most this many lane operations (`lanes.program_size` of
                          the plain trace). Triton's compile time grows much faster than
@@ -79,7 +81,22 @@ class KernelOptions:
                          renders 2× faster than its phases; the 64-sphere union of
                          experiments/bench/gradients.py (9.7k plain, 6.7k in phases)
                          compiled its forward in 347 s plain (4.4 ms a render at
-                         512×512) against 111 s in phases (4.5 ms). The "jax" path always takes the phases.
+                         512×512) against 111 s in phases (4.5 ms).
+      xla                the XLA compiler options of every backend's render program
+                         (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
+                         (on a CPU: the legacy loop emitter instead of XLA's MLIR
+                         fusion emitters, `xla_cpu_use_fusion_emitters = False`, and
+                         LLVM -O1, `xla_backend_optimization_level = 1`; nothing on a
+                         GPU). No fast math. The showcase on 2 shared CPU cores (jax
+                         0.10.2, 96×54): XLA's compile 1.3–2.3× faster in wall seconds
+                         (CPU seconds: 1.55× "fused", 2.1× "jax"), rendering 4–23 %
+                         ("fused") and 6–80 % ("jax") slower; value_and_grad (32×24)
+                         compiled 1.04–2.3× faster, its step −19 % to +35 %
+                         (docs/performance.md, "XLA compiler options"). Images agree
+                         with "default" to rounding except at pixels that "default"
+                         itself renders unstably (there). The `jaxrt render` command
+                         uses "fast-compile" unless told
+                         otherwise (`jaxrt.cli`); the library's default stays "default".
     """
 
     interpret: bool | None = None
@@ -95,6 +112,7 @@ class KernelOptions:
     pallas_block: int = 32
     march_form: str = "auto"
     plain_max_lane_ops: int = 5000
+    xla: str = "default"
 
     def __post_init__(self):
         def need(ok, field, expected):
@@ -119,6 +137,8 @@ class KernelOptions:
              "an integer in [16, 256] (rounded down to a power of two)")
         need(self.march_form in ("auto", "phases", "plain"), "march_form",
              '"auto", "phases" or "plain"')
+        need(isinstance(self.xla, str) and self.xla in XLA_PRESETS, "xla",
+             f"one of {sorted(XLA_PRESETS)} (jaxrt.xla.XLA_PRESETS)")
 
     def auto_max_lane_ops(self, backend):
         """The "auto" size limit for the fused `backend` ("fused" or "pallas")."""

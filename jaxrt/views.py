@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
 
+from . import xla
 from .camera import PerspectiveCamera, _Camera
 from .render import render
 from .settings import RenderSettings
@@ -98,7 +99,8 @@ def render_views(scene, cameras, settings=None, *, devices=None):
     `orbit`); returns an `Image` whose arrays have a leading view axis [V, ...].
 
     One compiled program (`jax.vmap` of `jaxrt.render` over the view axis), compiled
-    once per scene structure, settings and number of views. `devices` (None: one
+    once per scene structure, settings and number of views, with the XLA options of
+    `settings.kernel.xla` (`jaxrt.xla`). `devices` (None: one
     device; an integer D, 0 for all local devices; or a list of devices) shards the
     view axis over a one-axis mesh (V a multiple of their number).
     """
@@ -107,7 +109,7 @@ def render_views(scene, cameras, settings=None, *, devices=None):
         raise ValueError("`render_views(cameras=...)` needs cameras stacked along a view axis "
                          "(eye [V, 3]); use jaxrt.views.stack_cameras or jaxrt.views.orbit")
     mesh = None if devices is None else _view_mesh(devices, num_views(cameras))
-    return _render_views(scene, cameras, settings, mesh)
+    return xla.jitted(_render_views, settings)(scene, cameras, settings, mesh)
 
 
 def _view_mesh(devices, n):

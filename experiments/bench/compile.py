@@ -10,13 +10,21 @@ max_depth from the config).
 
     python experiments/bench/compile.py [--config configs/experiments/compile.toml]
         [--scenes showcase,spheres8,...] [--backends jax,fused] [--modes render,grad]
-        [--width W --height H] [--repeats N] [--glass-depth D] [--cache] [--eqns-only]
-        [--out out/compile]
+        [--xla default,fast-compile] [--width W --height H] [--repeats N]
+        [--glass-depth D] [--cache] [--eqns-only] [--out out/compile]
 
-For each (scene, backend, mode): `lower_s` (trace + lower to StableHLO), `compile_s`
-(XLA), their sum `total_s`, `run_ms` (median of `repeats` calls of the compiled
-program), and `eqns` (equations of the traced program, inner jaxprs included: the
-program size that tests/test_union_stack.py counts). Caches are cleared before every
+For each (scene, backend, mode, xla): `lower_s` (trace + lower to StableHLO),
+`compile_s` (XLA, with the compiler options of the `KernelOptions.xla` preset `xla`,
+`jaxrt.xla`; `compile_cpu_s`: the process's CPU seconds meanwhile, XLA's threads
+included, less sensitive than wall seconds to other jobs on a shared machine), the sum
+of lowering and compiling `total_s`, `run_ms` (median of `repeats` calls of the compiled
+program), `eqns` (equations of the traced program, inner jaxprs included: the program
+size that tests/test_union_stack.py counts); against the outputs of the first preset of
+the same scene, backend and mode (an image; for "grad" the loss and every gradient
+leaf): `max_diff` (the largest absolute difference), `rel_diff` (‖outputs − first‖ /
+‖first‖, 2-norms over all of them) and `diff_pixels` (render: pixels whose rgb differs
+by more than 1e-3); and `load`, the 1-minute load average when the row was measured.
+The presets of one (scene, backend, mode) run back to back. Caches are cleared before every
 measurement, and JAX's persistent compilation cache is off unless `--cache` is given
 (then `jaxrt.cache` is used where it exists), so compile times are cold ones. On a
 shared machine the times are noisy: compare rows of one run. Writes results.json and
@@ -41,6 +49,7 @@ def main(argv=None):
     ap.add_argument("--scenes", help="comma-separated subset of the config's scenes")
     ap.add_argument("--backends", help="comma-separated: jax, fused, pallas, auto")
     ap.add_argument("--modes", help="comma-separated: render, grad")
+    ap.add_argument("--xla", help="comma-separated KernelOptions.xla presets: default, fast-compile")
     ap.add_argument("--width", type=int)
     ap.add_argument("--height", type=int)
     ap.add_argument("--repeats", type=int)
@@ -62,6 +71,12 @@ def main(argv=None):
         ap.error(f"--scenes {unknown}: expected some of {sorted(SCENES)}")
     backends = args.backends.split(",") if args.backends else cfg["backends"]
     modes = args.modes.split(",") if args.modes else cfg["modes"]
+    presets = args.xla.split(",") if args.xla else cfg.get("xla", ["default"])
+    from jaxrt.xla import XLA_PRESETS
+
+    unknown = sorted(set(presets) - set(XLA_PRESETS))
+    if unknown:
+        ap.error(f"--xla {unknown}: expected some of {sorted(XLA_PRESETS)}")
 
     import jax
 
@@ -86,10 +101,15 @@ def main(argv=None):
     for name in scenes:
         for backend in backends:
             for mode in modes:
-                row = measure(cfg, name, backend, mode, compile_=not args.eqns_only)
-                rows.append(row)
-                print(_format(row), flush=True)
-                (out_dir / "results.json").write_text(json.dumps(dict(info=info, rows=rows), indent=1))
+                first = None
+                for preset in presets:
+                    row, out = measure(cfg, name, backend, mode, compile_=not args.eqns_only,
+                                       xla=preset)
+                    first = out if first is None else first
+                    row.update(_differences(out, first, mode))
+                    rows.append(row)
+                    print(_format(row), flush=True)
+                    (out_dir / "results.json").write_text(json.dumps(dict(info=info, rows=rows), indent=1))
     md = [f"# Compile time ({info['device']}, {info['platform']}, {info['cpu_cores']} cores, "
           f"jax {info['jax']}, {cfg['width']}×{cfg['height']})", "", _table(rows), ""]
     (out_dir / "compile.md").write_text("\n".join(md))
@@ -98,13 +118,37 @@ def main(argv=None):
 
 
 def _format(row):
-    return (f"{row['scene']:>11} {row['backend']:>6} {row['mode']:>6}  lower {row['lower_s']:7.2f} s"
-            f"  compile {row['compile_s']:7.2f} s  total {row['total_s']:7.2f} s"
-            f"  run {row['run_ms']:9.1f} ms  eqns {row['eqns']}")
+    return (f"{row['scene']:>11} {row['backend']:>6} {row['mode']:>6} {row['xla']:>12}"
+            f"  lower {row['lower_s']:7.2f} s  compile {row['compile_s']:7.2f} s"
+            f" (cpu {row['compile_cpu_s']:7.2f} s)"
+            f"  total {row['total_s']:7.2f} s  run {row['run_ms']:9.1f} ms  eqns {row['eqns']}"
+            f"  max_diff {row['max_diff']:.3g} (rel {row['rel_diff']:.3g})"
+            f"  diff_pixels {row['diff_pixels']}  load {row['load']}")
+
+
+def _differences(out, first, mode):
+    """max |out − first| over every output leaf, `rel_diff` = ‖out − first‖ / ‖first‖
+    over all leaves together (2-norms: gradient leaves differ in scale by decades), and
+    (render) the pixels whose rgb differs by more than 1e-3; NaN without outputs
+    (--eqns-only)."""
+    if out is None or first is None:
+        return dict(max_diff=float("nan"), rel_diff=float("nan"), diff_pixels=-1)
+    import jax
+
+    a = np.concatenate([np.ravel(np.asarray(x, float)) for x in jax.tree_util.tree_leaves(out)])
+    b = np.concatenate([np.ravel(np.asarray(x, float)) for x in jax.tree_util.tree_leaves(first)])
+    pixels = -1
+    if mode == "render":
+        pixels = int((np.abs(np.asarray(out) - np.asarray(first)).max(axis=-1) > 1e-3).sum())
+    return dict(max_diff=float(np.max(np.abs(a - b), initial=0.0)),
+                rel_diff=float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-30)),
+                diff_pixels=pixels)
 
 
 def _table(rows):
-    keys = ["scene", "backend", "mode", "lower_s", "compile_s", "total_s", "run_ms", "eqns"]
+    keys = ["scene", "backend", "mode", "xla", "lower_s", "compile_s", "compile_cpu_s", "total_s",
+            "run_ms",
+            "max_diff", "rel_diff", "diff_pixels", "load", "eqns"]
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     for r in rows:
         lines.append("| " + " | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k])
@@ -155,32 +199,47 @@ def program(scene, camera, settings, mode):
     return jax.value_and_grad(loss), dyn
 
 
-def measure(cfg, name, backend, mode, compile_=True):
+def measure(cfg, name, backend, mode, compile_=True, xla="default"):
+    """(row, outputs of the compiled program) for one scene, backend, mode and
+    `KernelOptions.xla` preset; outputs None with `compile_=False`."""
     import jax
+
+    from jaxrt import xla as jaxrt_xla
 
     scene, camera, settings = SCENES[name](cfg)
     settings = settings.replace(**{**cfg.get("settings", {}), "backend": backend})
+    settings = settings.replace(kernel=settings.kernel.replace(xla=xla))
     f, dyn = program(scene, camera, settings, mode)
     jax.clear_caches()
     eqns = n_equations(jax.make_jaxpr(f)(dyn).jaxpr)
     jax.clear_caches()
     if not compile_:
         nan = float("nan")
-        return dict(scene=name, backend=backend, mode=mode, lower_s=nan, compile_s=nan,
-                    total_s=nan, run_ms=nan, eqns=eqns)
+        return dict(scene=name, backend=backend, mode=mode, xla=xla, lower_s=nan, compile_s=nan,
+                    compile_cpu_s=nan, total_s=nan, run_ms=nan, eqns=eqns, load=_load()), None
     t0 = time.perf_counter()
-    lowered = jax.jit(f).lower(dyn)
-    t1 = time.perf_counter()
-    compiled = lowered.compile()
-    t2 = time.perf_counter()
-    jax.block_until_ready(compiled(dyn))
+    # the options of the renders traced in f (their settings.kernel.xla), as a fit step gets them
+    lowered, options = jaxrt_xla.lower_collected(jax.jit(f), dyn)
+    t1, c1 = time.perf_counter(), time.process_time()
+    compiled = lowered.compile(compiler_options=options or None)
+    t2, c2 = time.perf_counter(), time.process_time()
+    out = jax.block_until_ready(compiled(dyn))
     times = []
     for _ in range(cfg["repeats"]):
         t = time.perf_counter()
         jax.block_until_ready(compiled(dyn))
         times.append(time.perf_counter() - t)
-    return dict(scene=name, backend=backend, mode=mode, lower_s=t1 - t0, compile_s=t2 - t1,
-                total_s=t2 - t0, run_ms=1e3 * float(np.median(times)), eqns=eqns)
+    return dict(scene=name, backend=backend, mode=mode, xla=xla, lower_s=t1 - t0,
+                compile_s=t2 - t1, compile_cpu_s=c2 - c1, total_s=t2 - t0, run_ms=1e3 * float(np.median(times)),
+                eqns=eqns, load=_load()), out
+
+
+def _load():
+    """The 1-minute load average (the machine may be shared), or NaN."""
+    try:
+        return float(os.getloadavg()[0])
+    except OSError:
+        return float("nan")
 
 
 # --------------------------------------------------------------------------- scenes

@@ -1,0 +1,191 @@
+"""`KernelOptions.xla`: XLA compiler-option presets (`jaxrt.xla`). Validated like every
+setting; the options reach XLA's compile call for every program that renders; images
+agree with XLA's defaults to rounding; the preset is part of the jit cache key; flags
+that this XLA does not know are dropped with a warning, never an error."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrt as jr
+from jaxrt import xla
+from jaxrt.cli import _Failure, _with_cli_xla, main, parse_overrides
+from jaxrt.render import compile_render
+
+S = jr.sdf
+#: What "fast-compile" passes to XLA here: its CPU flags on a CPU, nothing on a GPU.
+FAST = xla.XLA_PRESETS["fast-compile"].get(jax.default_backend(), {})
+
+
+def _scene(radius=0.5):
+    """A sphere on a plane, one point light: no creases, so no pixel decided by rounding."""
+    return jr.Scene(
+        surface=S.Union(S.Translate(S.Sphere(radius=radius, material=0), offset=(0.0, 0.5, 0.0)),
+                        S.Plane(normal=(0.0, 1.0, 0.0), offset=0.0, material=1)),
+        materials=[jr.bsdf.Lambert(albedo=(0.8, 0.3, 0.2)), jr.bsdf.Lambert(albedo=(0.7, 0.7, 0.7))],
+        lights=[jr.PointLight(position=(2.0, 4.0, -3.0), intensity=(30.0, 30.0, 30.0))],
+        background=(0.05, 0.05, 0.08))
+
+
+CAMERA = jr.PerspectiveCamera(eye=(0.0, 1.0, -3.0), target=(0.0, 0.4, 0.0), up=(0.0, 1.0, 0.0),
+                              fov=40.0, width=8, height=6)
+
+
+def _settings(backend, preset):
+    return jr.RenderSettings(backend=backend, aovs=(), max_steps=64, shadow_steps=32,
+                             kernel=jr.KernelOptions(xla=preset))
+
+
+@pytest.fixture
+def compiles(monkeypatch):
+    """[(module name, {option: value})] of every XLA compile while the test runs (a spy
+    on JAX's compile call; `jax._src` is internal: the test fails loudly if it moves)."""
+    from jax._src import compiler
+
+    seen, original = [], compiler.compile_or_get_cached
+
+    def spy(*args, **kwargs):
+        values = list(args) + list(kwargs.values())
+        [module] = [v for v in values if hasattr(v, "operation")]
+        [options] = [v for v in values if hasattr(v, "env_option_overrides")]
+        name = str(module.operation.attributes["sym_name"]).strip('"')
+        seen.append((name, dict(options.env_option_overrides)))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(compiler, "compile_or_get_cached", spy)
+    return seen
+
+
+@pytest.fixture(scope="module")
+def images():
+    """{(backend, preset): rgb} of the test scene."""
+    out = {}
+    for backend in ("jax", "fused"):
+        for preset in ("default", "fast-compile"):
+            out[backend, preset] = np.asarray(jr.render(_scene(), CAMERA, _settings(backend, preset)).rgb)
+    return out
+
+
+def test_xla_preset_is_validated_with_the_field_name():
+    assert jr.KernelOptions().xla == "default"
+    with pytest.raises(ValueError, match=r"RenderSettings\.kernel\.xla = 'fast', expected one of"):
+        jr.KernelOptions(xla="fast")
+    with pytest.raises(ValueError, match=r"RenderSettings\.kernel\.xla = 1, expected"):
+        jr.RenderSettings(kernel={"xla": 1})
+    assert jr.RenderSettings(kernel={"xla": "fast-compile"}).kernel.xla == "fast-compile"
+    with pytest.raises(jr.config.ConfigError, match=r"settings\.kernel\.xla = 'O1', expected"):
+        jr.config.check_settings({"kernel": {"xla": "O1"}}, "--set")
+    with pytest.raises(ValueError, match=r"RenderSettings\.kernel\.xla = 'turbo'"):
+        xla.compiler_options("turbo")
+
+
+def test_presets_per_platform():
+    """"default" is XLA's defaults everywhere; "fast-compile" names CPU flags only (a GPU
+    compiles as before); the flags are known to this XLA, so none is dropped."""
+    assert xla.compiler_options(jr.RenderSettings()) == {}
+    assert xla.compiler_options("fast-compile", platform="gpu") == {}
+    assert xla.compiler_options("fast-compile", platform="cpu") == {
+        "xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}
+    assert xla.compiler_options(_settings("jax", "fast-compile")) == FAST
+
+
+def test_an_unknown_flag_is_dropped_with_a_warning(monkeypatch):
+    """A flag this XLA does not know (another jax version) is left out, the others kept,
+    and rendering goes on."""
+    known = {"xla_backend_optimization_level": 1}
+    preset = {**known, "xla_cpu_flag_jaxrt_made_up": True}
+    monkeypatch.setitem(xla.XLA_PRESETS, "fast-compile", {jax.default_backend(): preset})
+    with pytest.warns(UserWarning, match="xla_cpu_flag_jaxrt_made_up"):
+        assert xla.compiler_options("fast-compile") == known
+    image = jr.render(_scene(), CAMERA, _settings("jax", "fast-compile"))
+    assert np.all(np.isfinite(np.asarray(image.rgb)))
+
+
+@pytest.mark.parametrize("backend", ["jax", "fused"])
+def test_fast_compile_images_equal_default_to_rounding(images, backend):
+    default, fast = images[backend, "default"], images[backend, "fast-compile"]
+    assert default.max() > 0.1  # something lit
+    np.testing.assert_allclose(fast, default, rtol=0, atol=2e-5)
+
+
+def test_options_reach_the_compiler_and_are_part_of_the_cache_key(images, compiles):
+    """`render` compiles with the preset's options; a new preset compiles again, a new
+    parameter value does not; `compile_render` and `render_views` pass them too."""
+    settings = _settings("jax", "fast-compile")
+    jr.render(_scene(radius=0.45), CAMERA, settings).rgb.block_until_ready()  # fixture compiled it
+    assert [c for c in compiles if "render" in c[0]] == []
+    assert hash(settings) != hash(_settings("jax", "default"))
+    f = compile_render(_scene(), CAMERA, settings)
+    renders = [opts for name, opts in compiles if "render" in name]
+    assert renders == [FAST]
+    np.testing.assert_allclose(np.asarray(f(_scene(), CAMERA).rgb), images["jax", "fast-compile"],
+                               rtol=0, atol=1e-6)
+    cameras = jr.views.stack_cameras([CAMERA, CAMERA])
+    jr.render_views(_scene(), cameras, settings).rgb.block_until_ready()
+    views = [opts for name, opts in compiles if "render_views" in name]
+    assert views == [FAST]
+    jr.render_views(_scene(radius=0.4), cameras, settings).rgb.block_until_ready()
+    assert len([n for n, _ in compiles if "render_views" in n]) == 1
+
+
+def test_a_render_inside_a_larger_program_leaves_the_options_to_it(compiles):
+    """Inside jit (and under grad) a render's options are the outer program's: no error
+    about compiler options on an inner jit; `compile_collected` gathers them, also when
+    JAX reuses the cached trace (no render runs then)."""
+    settings = _settings("jax", "fast-compile")
+    assert not xla.tracing()
+    assert jax.jit(lambda x: xla.tracing() + x)(0) == 1
+    traced = []
+
+    @jax.jit
+    def total(radius):
+        traced.append(1)
+        scene = jr.Scene(surface=S.Sphere(radius=radius, material=0),
+                         materials=[jr.bsdf.Lambert(albedo=(0.5, 0.5, 0.5))], lights=[])
+        return jnp.sum(jr.render(scene, CAMERA, settings).rgb)
+
+    r = jnp.float32(0.5)
+    first = xla.compile_collected(total, r)
+    second = xla.compile_collected(total, r)
+    assert len(traced) == 1  # the second lowering reused the trace: nothing was noted
+    assert [opts for name, opts in compiles if "total" in name] == [FAST]  # compiled once
+    assert float(first(r)) == float(second(r))
+    assert xla.lower_collected(total, r)[1] == FAST
+
+
+def test_fit_step_compiles_with_the_losses_options(compiles):
+    """The optax step (`fit._Step`) of a loss that renders gets that render's options."""
+    settings = _settings("jax", "fast-compile")
+    target = jnp.full((CAMERA.height, CAMERA.width, 3), 0.2)
+
+    def loss(p, _):
+        scene = jr.Scene(surface=S.Sphere(radius=p, material=0),
+                         materials=[jr.bsdf.Lambert(albedo=(0.5, 0.5, 0.5))],
+                         lights=[jr.DirectionalLight(direction=(0.0, 0.0, -1.0), irradiance=(2.0,) * 3)])
+        return jr.fit.l2_loss(jr.render(scene, CAMERA, settings).rgb, target)
+
+    result = jr.fit.fit(loss, jnp.float32(0.6), jr.fit.adam(0.01), max_steps=2, progress=False)
+    assert np.isfinite(result.loss)
+    steps = [opts for name, opts in compiles if "optax_step" in name]
+    assert steps == [FAST]
+
+
+def test_cli_uses_fast_compile_unless_told(tmp_path, capsys, compiles):
+    over = parse_overrides(["kernel.xla=default", "kernel.unroll=2", "spp=2"])
+    assert over == {"kernel": {"xla": "default", "unroll": 2}, "spp": 2}
+    with pytest.raises(_Failure, match="unknown kernel option `speed`"):
+        parse_overrides(["kernel.speed=3"])
+    with pytest.raises(_Failure, match="unknown setting `camera.fov`"):
+        parse_overrides(["camera.fov=3"])
+    file_settings = {"kernel": {"unroll": 3}}
+    assert _with_cli_xla({}, file_settings) == {"kernel": {"unroll": 3, "xla": "fast-compile"}}
+    assert _with_cli_xla(over, file_settings) == over
+    assert _with_cli_xla({}, {"kernel": {"xla": "default"}}) == {}
+    config = tmp_path / "ball.toml"
+    config.write_text('[camera]\neye = [0.0, 0.0, -4.0]\ntarget = [0.0, 0.0, 0.0]\nwidth = 6\n'
+                      'height = 4\n[settings]\nbackend = "jax"\naovs = []\n[materials.white]\n'
+                      'type = "lambert"\n[surface]\ntype = "sphere"\nradius = 1.0\n')
+    assert main(["render", str(config), "-o", str(tmp_path / "ball"), "--no-cache"]) == 0
+    assert "xla fast-compile" in capsys.readouterr().out
+    assert [opts for name, opts in compiles if "render" in name] == [FAST]
