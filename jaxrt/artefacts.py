@@ -27,8 +27,9 @@
 - see-through pixels: a pixel whose camera ray ran out of budget (its steps AOV above
   max_steps) and whose depth lies beyond the reference's (by more than
   `SEE_THROUGH_RTOL`): it shows the background or a surface behind the one the
-  reference hits (an exhausted ray that `integrator._meet_planes` carried on to the
-  floor plane, through what lies between). A hole that the outline test misses (its
+  reference hits (before issue 14's fix, an exhausted ray that `integrator._meet_planes`
+  carried on to the floor plane, through what lies between; now such a ray stays a
+  miss, which still counts here where the reference hits). A hole that the outline test misses (its
   neighbours need not hit) is one of these.
 
 Everything here is numpy on the rendered arrays.

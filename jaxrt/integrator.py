@@ -50,6 +50,7 @@ from .heightfield import HeightField
 from .kinds import group_by_kind, lookup, stack
 from .lights import shadow_ray
 from .march import SphereTracing, tape
+from .march.sphere import rounding_floor
 from .march.search import repeat
 from .trace import hit_epsilon, intersect_plane, normal_and_material, sphere_trace
 from .vecmath import dot, safe_div, safe_norm, stop_gradient, to_local
@@ -216,10 +217,10 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     surface = scene.surface
     planes = analytic_planes(surface) if getattr(settings, "analytic_planes", False) else []
     hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max,
-                       fields=("steps", "inside"))
+                       fields=("steps", "inside") + (MEET_FIELDS if planes else ()))
     t, found, steps, inside = hit.t, hit.hit, hit.steps, hit.inside
     if planes:
-        t, found = _meet_planes(planes, origin, direction, t, found, hit.inside, settings, t_max)
+        t, found = _meet_planes(planes, origin, direction, hit, settings, t_max)
     p = origin + t * direction
     normal, material = normal_and_material(surface, p, settings)
     which = jnp.zeros((), jnp.int32)
@@ -242,6 +243,15 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
 #: pixel, and p stays far from float overflow.
 PLANE_HORIZON = 1e4
 
+#: A ray out of budget glides along a plane if the plane's distance at its last sample
+#: is the scene's f there to within the rounding floor of f at that point
+#: (`march.sphere.rounding_floor`) plus this fraction of f (the march keeps f / L: the
+#: round trip through the Lipschitz factor).
+GLIDE_RTOL = 1e-5
+
+#: The `sphere_trace` fields that `_meet_planes` reads.
+MEET_FIELDS = ("exhausted", "last_t", "last_d")
+
 
 def analytic_planes(surface):
     """The `sdf.Plane`s at the top of the scene's surface (the surface itself, or children
@@ -255,21 +265,53 @@ def analytic_planes(surface):
     return []
 
 
-def _meet_planes(planes, origin, direction, t, found, inside, settings, t_max):
-    """Ray–plane intersection (notes; `trace.intersect_plane`) for rays that the march let
-    go: escaped at max_distance, or out of budget gliding along the plane. The march never
-    passes a surface, so such a ray meets nothing before the plane's t. Rays that start
-    inside a solid, and dead rays (t_max = 0), are left alone. Differentiable in the
-    plane, the origin and the direction."""
+def _meet_planes(planes, origin, direction, hit, settings, t_max):
+    """Ray–plane intersection (notes; `trace.intersect_plane`) for the rays that the march
+    `hit` (a `trace.Hit` with `MEET_FIELDS`) let go where nothing can lie between its
+    last sample and the plane. Returns (t, found).
+
+    Met (the nearest such plane at its analytic t, where 0 < t < PLANE_HORIZON ·
+    max_distance):
+    - a ray that escaped: its march stepped beyond t_max (max_distance) without a hit.
+      The march never passes a surface, so nothing lies before t_max; the plane, met
+      beyond it, is what the ray sees up to the horizon (what lies between t_max and the
+      plane is not marched: an object beyond max_distance is not seen, the floor is).
+    - a ray out of budget gliding along the plane: at its last sample (`Hit.last_t`) the
+      plane is the nearest surface, its distance there the scene's f to within the
+      rounding floor of f at that point (+ GLIDE_RTOL · f), and the plane's t lies beyond
+      `last_t`. A ray grazing a floor converges on it too slowly for its budget; the
+      analytic t is where it was going.
+    Not met:
+    - a ray out of budget whose last sample is nearer some other surface than the
+      plane (it crawled past a near miss, or was approaching another object): what lies
+      between its last sample and the plane was never marched, so the ray stays a miss
+      (issue 14: such rays saw the floor through the objects in between);
+    - rays that start inside a solid, dead rays (t_max = 0), rays that hit.
+    What remains: a gliding ray out of budget is carried across the unmarched rest of
+    its path, so an object standing on the floor ahead of it (between its last sample
+    and the plane's t) is not seen; nor is one beyond max_distance in front of the floor.
+
+    No extra march or SDF evaluation of the scene: one plane distance per plane at the
+    last sample. Differentiable in the plane, the origin and the direction (through the
+    analytic t; the conditions carry no gradient)."""
+    t, found = hit.t, hit.hit
     limit = jnp.asarray(settings.max_distance if t_max is None else t_max, t.dtype)
     far = PLANE_HORIZON * settings.max_distance
+    free = (~found) & (~hit.inside) & (limit > 0.0)
+    escaped = free & (~hit.exhausted)
+    last_t, last_d = stop_gradient(hit.last_t), stop_gradient(hit.last_d)
+    last = stop_gradient(origin) + last_t * stop_gradient(direction)
+    tol = rounding_floor(last) + GLIDE_RTOL * jnp.abs(last_d)
+    met = jnp.zeros_like(found)
     for plane in planes:
         n = plane.normal / jnp.sqrt(dot(plane.normal, plane.normal))
         t_p, ok = intersect_plane(origin, direction, n, plane.offset)
-        meet = (~found) & (~inside) & ok & (limit > 0.0) & (t_p < far)
+        d_p = stop_gradient(plane).distance(last)
+        gliding = free & hit.exhausted & (jnp.abs(d_p - last_d) <= tol) & (t_p > last_t)
+        meet = (escaped | gliding) & ok & (t_p < far) & ((~met) | (t_p < t))
         t = jnp.where(meet, t_p, t)
-        found = found | meet
-    return t, found
+        met = met | meet
+    return t, found | met
 
 
 def visibility(scene, origin, wi, distance, settings):

@@ -166,7 +166,9 @@ class RenderSettings:
                        the scene's union, which are also intersected analytically
                        (notes, "ray–plane"; `analytic_planes`, default True): a floor
                        reaches the horizon (up to 10⁴·max_distance) instead of ending
-                       in a circle of radius max_distance.
+                       in a circle of radius max_distance. Only rays that escaped, or
+                       ran out of budget gliding along the plane, meet it there (the
+                       `analytic_planes` field).
       over_relaxation  ω of Keinert et al. 2014 "Enhanced Sphere Tracing" (1 = plain
                        sphere tracing; 1.2–1.8 take longer steps with a safe fall-back).
       newton_steps     Newton polishing steps at a hit (they also carry the implicit-
@@ -293,8 +295,15 @@ class RenderSettings:
     recursion: str = "unrolled"
     aovs: tuple = AOVS
     # Planes at the top of the scene's union are also intersected analytically
-    # (integrator.analytic_planes): a floor reaches the horizon instead of ending at
-    # max_distance. False: planes are only sphere-traced, like every other shape.
+    # (integrator.analytic_planes, integrator._meet_planes): a floor reaches the horizon
+    # instead of ending at max_distance. Met by a ray that did not hit: one that escaped
+    # at max_distance, or one out of budget gliding along the plane (the plane the
+    # nearest surface at its last sample, f there = the plane's distance to rounding,
+    # the plane's t beyond that sample). Not met by a ray out of budget nearer another
+    # surface (past a near miss: it stays a miss, issue 14), nor by rays starting inside
+    # a solid. Not seen: an object beyond max_distance before the floor, or one standing
+    # on the floor ahead of a gliding ray out of budget (the rest of its path is not
+    # marched). False: planes are only sphere-traced, like every other shape.
     analytic_planes: bool = True
     # The image axis cut into one block per device when devices != 1 (`jaxrt.sharding`):
     # "columns" (default: left and right of a frame usually march alike, top and

@@ -74,6 +74,12 @@ class Hit(eqx.Module):
     converging an exhausted ray whose distance was still falling when the budget ran out
                (and whose secant finish found no surface): it may be about to hit
                something, where an exhausted ray that was receding is not.
+    last_t, last_d
+               the last sample that the march accepted and f there: where a ray out of
+               budget stopped (an over-relaxed candidate that the next step would have
+               rejected is not accepted; the safe sample before it is), the sample from
+               which a ray that escaped stepped beyond t_max, or a hit's marched sample
+               (before the secant finish and the polish). No gradient.
     """
 
     t: jnp.ndarray
@@ -85,10 +91,12 @@ class Hit(eqx.Module):
     closest_d: jnp.ndarray | None
     closest_bracket: jnp.ndarray | None = None
     converging: jnp.ndarray | None = None
+    last_t: jnp.ndarray | None = None
+    last_d: jnp.ndarray | None = None
 
 
 HIT_FIELDS = ("t", "hit", "steps", "inside", "exhausted", "closest_t", "closest_d",
-              "closest_bracket", "converging")
+              "closest_bracket", "converging", "last_t", "last_d")
 
 
 def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None, fields=None):

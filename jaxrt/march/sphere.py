@@ -228,6 +228,16 @@ def march(sdf, origin, direction, settings, cone, t_max):
     hit = hit | finished
     t = jnp.where(finished, t_star, t)
     exhausted = (~done) & (~hit)
+    # The last sample that the march accepted, and f there: where a ray out of budget
+    # stopped (the candidate of an over-relaxed step that the next step would have
+    # rejected is not accepted: the last safe sample before it is), where a ray that
+    # escaped stepped beyond t_max from, or the hit's sample.
+    last_t, last_r = s["t"], r
+    if relax:
+        rejected = exhausted & (s["omega"] > 1.0) & (r + s["r_prev"] < last_t - s["t_prev"]) & (
+            s["steps"] > 0)
+        last_t = jnp.where(rejected, s["t_prev"], last_t)
+        last_r = jnp.where(rejected, s["r_prev"], last_r)
     # A ray that did not hit ends with a near miss: the smaller of its last two samples
     # (a budget that ran out leaves one sample that the loop did not examine).
     final = ratio_at(t, r)
@@ -243,7 +253,7 @@ def march(sdf, origin, direction, settings, cone, t_max):
         steps=s["steps"] + exhausted.astype(jnp.int32),
         inside=start < 0.0, exhausted=exhausted, closest_t=best_t,
         closest_d=best_r * lipschitz * sign, closest_bracket=jnp.stack([lo, hi]),
-        converging=exhausted & approaching,
+        converging=exhausted & approaching, last_t=last_t, last_d=last_r * lipschitz * sign,
     )
 
 
