@@ -70,10 +70,21 @@ def _render(scene, camera, settings):
         devices = sharding.local_devices(settings.devices)
         out = sharding.shard_image(trace_block, (scene, camera), samples, (h, w * spp), devices,
                                    split=settings.split)
+    outline = {k: out.pop(k) for k in _outline_keys(settings)}
     out = {k: v.reshape((h, w, spp) + v.shape[2:]).mean(axis=2) for k, v in out.items()}
+    if _outline_keys(settings):
+        terms, xy = (outline.pop(k).reshape(h * w * spp, -1) for k in _outline_keys(settings))
+        out["rgb"] = out["rgb"] + silhouette.splat_outline(terms, xy, h, w, spp)
     if settings.devices != 1:
         out = sharding.image_sharded(out, devices, split=settings.split)
     return Image(**out)
+
+
+def _outline_keys(settings):
+    """The per-sample outputs of the outline term (`silhouette_gradient = "outline"`)."""
+    if settings.silhouette and settings.silhouette_gradient == "outline":
+        return (silhouette.OUTLINE_RGB, silhouette.OUTLINE_XY)
+    return ()
 
 
 def _vmapped(kernel, params, samples, settings):
@@ -132,7 +143,7 @@ def _sample_kernel(settings):
         out = trace_radiance(scene, o, d, cone, settings)
         if settings.silhouette:
             out = silhouette.blend(scene, camera, xy, out, settings)
-        return {k: out[k] for k in ("rgb",) + settings.aovs}
+        return {k: out[k] for k in ("rgb",) + settings.aovs + _outline_keys(settings)}
 
     return kernel
 

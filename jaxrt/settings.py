@@ -11,6 +11,7 @@ _BACKENDS = ("jax", "fused", "pallas", "auto")
 _ROOT_SOLVERS = ("newton", "optimistix")
 _RECURSIONS = ("unrolled", "scan")
 _SPLITS = ("columns", "rows")
+_SILHOUETTE_GRADIENTS = ("ramp", "outline")
 AOVS = ("depth", "normal", "albedo", "steps", "coverage")
 #: Rays per tile of `batch_size = "auto"`: on a CPU, tiles that stay in cache; on a GPU,
 #: tiles large enough to fill it (a 480×270 image is one tile) that bound the memory of
@@ -265,6 +266,17 @@ class RenderSettings:
                        2W; divided by sqrt(spp) when there are several samples per
                        pixel). W ≥ 1 at 1 spp keeps the ramp's derivative summing to
                        1 along every row of pixels an outline crosses.
+      silhouette_gradient where the estimator puts the derivative of an outline's
+                       position: "ramp" (default) on the ramp's samples, 0 to
+                       2·silhouette_width pixels outside the outline, the exact
+                       derivative of the estimator's own (dilated) image; "outline" on
+                       the pixels the outline crosses (`silhouette.splat_outline`),
+                       that of a box-filtered image. Pick "outline" when the loss's
+                       values are box-filtered (a photograph, or a straight-through
+                       loss with the values of a silhouette-free render): a ramp
+                       sample weighs the outline's derivative with the residual 1–2
+                       pixels outside the outline, where an object that is too large
+                       has none, so it shrinks far too weakly (docs/inverse.md).
     """
 
     max_steps: int = 128
@@ -291,6 +303,7 @@ class RenderSettings:
     devices: int = 1
     silhouette: bool = False
     silhouette_width: float = 1.0
+    silhouette_gradient: str = "ramp"
     root_solver: str = "newton"
     recursion: str = "unrolled"
     aovs: tuple = AOVS
@@ -368,6 +381,8 @@ class RenderSettings:
             "silhouette_width",
             "a number in (0, 16] (pixels)",
         )
+        need(self.silhouette_gradient in _SILHOUETTE_GRADIENTS, "silhouette_gradient",
+             f"one of {_SILHOUETTE_GRADIENTS}")
         need(self.root_solver in _ROOT_SOLVERS, "root_solver", f"one of {_ROOT_SOLVERS}")
         need(isinstance(self.analytic_planes, bool), "analytic_planes", "true or false")
         need(self.split in _SPLITS, "split", f"one of {_SPLITS}")

@@ -158,7 +158,7 @@ def _curvature(grad, hess, direction):
 
 
 def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
-    """(α, valid, p_s, n_s, r*) of the ray's nearest near miss.
+    """(α, valid, p_s, n_s, r*, outline) of the ray's nearest near miss.
 
     α = ramp(d* / (W · s*)), 0 where the ray has no near miss or starts inside a
     surface. d* is the distance from p* = o + t* d to the surface, with the gradient
@@ -171,8 +171,9 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     pixel, s* of which towards the surface (world units per pixel). The gradient of α
     (not its value) is scaled by the length ratio 1 − d* κ (κ the apparent curvature
     of the level-set contour at p*) of the outline and the offset curve the sample
-    lies on. p_s, its unit normal n_s and r* = r(t*) (the cone radius) carry no
-    gradient.
+    lies on. p_s, its unit normal n_s, r* = r(t*) (the cone radius) and `outline`
+    (`outline_offset`: the outline's position in the image relative to the sample)
+    carry no gradient.
     """
     dtype = origin.dtype
     t_star = tape.march(refine_closest, sdf, origin, direction, cone, hit)
@@ -187,7 +188,8 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     n = normalize(grad)
     radius = jax.lax.stop_gradient(cone[0] + cone[1] * t_star)  # half a pixel at t*
     d_origin, d_direction = jacobian
-    footprint = safe_norm((d_origin + t_star * d_direction).T @ n)
+    image_normal = (d_origin + t_star * d_direction).T @ n  # ∂(distance)/∂(px, py)
+    footprint = safe_norm(image_normal)
     width = settings.silhouette_width / jnp.sqrt(jnp.asarray(settings.spp, dtype))
     valid = ((~hit.inside) & (t_star > 0.0) & (radius > 0.0) & (grad_norm > 0.0)
              & (footprint > 0.0))
@@ -212,7 +214,19 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     alpha = jax.lax.stop_gradient(alpha) + scale * (alpha - jax.lax.stop_gradient(alpha))
     alpha = jnp.where(valid, alpha, 0.0)
     n_s = jnp.where(ok_s, normalize(grad_s), n)
-    return alpha, valid, p_s, n_s, radius
+    outline = outline_offset(distance, image_normal, footprint, width, valid)
+    return alpha, valid, p_s, n_s, radius, outline
+
+
+def outline_offset(distance, image_normal, footprint, width, valid):
+    """Where the outline lies in the image, from the sample (pixels, no gradient): the
+    sample is d*/s* pixels outside it along the image-space normal Jᵀn*/s*, so the
+    outline is at −d* · Jᵀn* / s*²; its length is clipped to the ramp's 2W (0 where the
+    sample has no near miss)."""
+    offset = -safe_div(distance, jnp.where(valid, footprint, 1.0) ** 2) * image_normal
+    length = safe_norm(offset)
+    offset = offset * jnp.minimum(1.0, safe_div(2.0 * width, length))
+    return jax.lax.stop_gradient(jnp.where(valid & jnp.all(jnp.isfinite(offset)), offset, 0.0))
 
 
 def blend(scene, camera, xy, out, settings):
@@ -233,7 +247,7 @@ def blend(scene, camera, xy, out, settings):
     march = SphereTracing.of(settings, newton_steps=0)
     hit = sphere_trace(scene.surface, origin, direction, march, cone=cone,
                        fields=("inside", "closest_t", "closest_bracket"))
-    alpha, valid, p_s, n_s, radius = coverage(
+    alpha, valid, p_s, n_s, radius, outline = coverage(
         scene.surface, origin, direction, cone, jacobian, hit, settings)
     entry, aim, found = tape.march(lambda *a: inner_hit(*a, settings), scene.surface, origin,
                                    p_s, n_s, radius)
@@ -250,6 +264,38 @@ def blend(scene, camera, xy, out, settings):
     frozen = eqx.tree_at(lambda s: s.surface, scene, stop_gradient(scene.surface))
     inner = trace_radiance(frozen, start, aim, inner_cone, settings)
     result = dict(out)
-    result["rgb"] = out["rgb"] + alpha * (inner["rgb"] - out["rgb"])
+    contrast = inner["rgb"] - out["rgb"]
+    if settings.silhouette_gradient == "outline":
+        # α's derivative (where the outline is) goes to the outline's own pixels
+        # (`splat_outline`); the rest of the gradient stays with the sample.
+        result["rgb"] = out["rgb"] + jax.lax.stop_gradient(alpha) * contrast
+        result[OUTLINE_RGB] = (alpha - jax.lax.stop_gradient(alpha)) * jax.lax.stop_gradient(contrast)
+        result[OUTLINE_XY] = jax.lax.stop_gradient(xy) + jnp.where(use, outline, 0.0)
+    else:
+        result["rgb"] = out["rgb"] + alpha * contrast
     result["coverage"] = out["coverage"] + alpha * (1.0 - out["coverage"])
     return result
+
+
+# The per-sample outputs of `blend` with silhouette_gradient = "outline": the outline
+# term (value 0, derivative ∂α · (L_in − L_out)) and the outline's image position.
+OUTLINE_RGB, OUTLINE_XY = "outline_rgb", "outline_xy"
+
+
+def splat_outline(values, xy, height, width, spp):
+    """The outline terms `values` [N, C] of N = H·W·spp samples, each added to the pixel
+    that holds its outline's image position `xy` [N, 2] (continuous pixels; positions
+    outside the image are dropped), averaged over the pixel's spp samples: [H, W, C].
+
+    Linear in `values` (whose value is 0), so it adds nothing to the image; its
+    derivative is that of the box-filtered image as its outline moves: a box-filtered
+    pixel changes by the outline's normal speed integrated over the part of the outline
+    inside it, and the ramp's samples of a row, whose derivatives sum to the outline's
+    (`ramp`), land on the pixels that part crosses, not on the ramp's samples up to 2W
+    pixels outside it. Its transpose reads an image cotangent at each sample's outline.
+    """
+    col, row = jnp.floor(xy[:, 0]).astype(jnp.int32), jnp.floor(xy[:, 1]).astype(jnp.int32)
+    inside = (row >= 0) & (row < height) & (col >= 0) & (col < width)
+    image = jnp.zeros((height, width, values.shape[-1]), values.dtype)
+    return image.at[jnp.clip(row, 0, height - 1), jnp.clip(col, 0, width - 1)].add(
+        jnp.where(inside, 1.0 / spp, 0.0)[:, None] * values)
