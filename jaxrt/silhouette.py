@@ -57,6 +57,19 @@ that belongs to a sliver of the pixel far thinner than α; its colour keeps the
 gradients of materials, lights and camera. The ray's own radiance keeps all its
 (interior) gradients.
 
+Where the outline's derivative goes (`RenderSettings.silhouette_gradient`). "ramp"
+(default): on the ramp's samples, 0 to 2W pixels outside the outline, the exact
+derivative of the estimator's own image. "outline": each ramp sample's term
+∂α · (L_in − L_out) is added to the pixel that holds its outline point, d*/s* pixels
+inwards along the image-space normal Jᵀn* (`outline_offset`, `splat_outline`), so the
+image's derivative is that of a box-filtered image, whose pixels change where the
+outline crosses them. A loss whose values are box-filtered (a photograph, or a
+straight-through loss I_sil + stop_gradient(I_box − I_sil)) then weighs the outline's
+derivative with its residual at the outline, inside which an object that is too large
+has its residual; "ramp" weighs it with the residual up to 2W pixels outside, where
+there is none, so too large an object shrinks several times too weakly
+(tests/test_silhouette.py, docs/inverse.md).
+
 What it approximates, and its bias.
 - The image: the ramp lies wholly outside the outline (samples that hit count as fully
   covered, since their distance to the outline is not known), so outlines are dilated

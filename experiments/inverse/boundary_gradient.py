@@ -1,8 +1,9 @@
 """The CSG study's boundary-gradient check (docs/inverse.md, "why it does not converge"):
 at the escaped point of the full run (arm half-height 0.52, centre 0.47 high), the
-debiased loss's gradient — plain, and with the residual blurred by a 3- and 5-tap tent
-before it weights the gradient — against central differences (h = 0.01) of the
-box-filtered loss. Quick settings, 12 views.
+debiased loss's gradient against central differences (h = 0.01) of the box-filtered
+loss: with `silhouette_gradient = "ramp"` (plain, and with the residual blurred by a
+5-tap tent before it weights the gradient) and with "outline" (the study's setting).
+Quick settings, 12 views.
 
     python experiments/inverse/boundary_gradient.py [--size 40] [--capsule]
 """
@@ -54,10 +55,10 @@ def main(argv=None):
     p0["arm_half_height"] = jnp.asarray(0.52)
     p0["arm_offset"] = p0["arm_offset"].at[1].set(0.47)
 
-    def debiased(taps):
+    def debiased(taps, mode):
         def loss(p):
             scene, cameras = study.build(p)
-            image = jr.render_views(scene, cameras, fs).rgb
+            image = jr.render_views(scene, cameras, fs.replace(silhouette_gradient=mode)).rgb
             r = jax.lax.stop_gradient(jr.render_views(scene, cameras, ts).rgb) - targets
             weight = jax.lax.stop_gradient(2.0 * (blur(r, taps) if taps else r))
             return jnp.mean(r * r) + jnp.mean(weight * (image - jax.lax.stop_gradient(image)))
@@ -67,8 +68,9 @@ def main(argv=None):
         return float(g[k][i]) if g[k].ndim else float(g[k])
 
     print("                " + " ".join((k if i == () else f"{k}[{i}]").rjust(18) for k, i in KEYS))
-    for name, taps in (("debiased", None), ("tent 3", (1, 2, 1)), ("tent 5", (1, 2, 3, 2, 1))):
-        g = jax.grad(debiased(taps))(p0)
+    for name, taps, mode in (("ramp", None, "ramp"), ("ramp, tent 5", (1, 2, 3, 2, 1), "ramp"),
+                             ("outline", None, "outline")):
+        g = jax.grad(debiased(taps, mode))(p0)
         print(f"{name:16s}" + " ".join(f"{pick(g, k, i):+18.3e}" for k, i in KEYS), flush=True)
     box = jax.jit(lambda p: jr.fit.l2_loss(jr.render_views(*study.build(p), ts).rgb, targets))
     h, fd = 0.01, []

@@ -119,7 +119,8 @@ def settings(cfg, target):
     if target:
         return jr.RenderSettings(spp=cfg["target_spp"], silhouette=False, **common)
     return jr.RenderSettings(spp=cfg["fit_spp"], silhouette=True,
-                             silhouette_width=cfg["silhouette_width"], **common)
+                             silhouette_width=cfg["silhouette_width"],
+                             silhouette_gradient=cfg.get("silhouette_gradient", "ramp"), **common)
 
 
 def grid(cfg, values):
