@@ -52,12 +52,13 @@ def shape(p):
     t = sdf.Translate
     body = sdf.SmoothUnion(t(sdf.RoundBox(p["body_half_extents"], p["body_radius"], material=0), p["body_offset"]),
                            t(sdf.Sphere(p["dome_radius"], material=1), p["dome_offset"]), p["blend_body"])
-    arms = sdf.SmoothUnion(t(sdf.Capsule(p["arm_half_height"], p["arm_radius"], material=1), p["arm_offset"]),
-                           t(sdf.Cylinder(p["post_radius"], p["post_half_height"], material=0), p["post_offset"]),
-                           p["blend_arms"])
+    # the arm and the post each stand on the body, so both blends shape a junction
+    body = sdf.SmoothUnion(body, t(sdf.Capsule(p["arm_half_height"], p["arm_radius"], material=1),
+                                   p["arm_offset"]), p["blend_arms"])
+    post = t(sdf.Cylinder(p["post_radius"], p["post_half_height"], material=0), p["post_offset"])
     ring = t(sdf.Rotate(sdf.Torus(p["ring_major_radius"], p["ring_minor_radius"], material=1),
                         (1.0, 0.0, 0.0), p["ring_angle"]), p["ring_offset"])
-    return sdf.Union(sdf.SmoothUnion(body, arms, p["blend_all"]), ring,
+    return sdf.Union(sdf.SmoothUnion(body, post, p["blend_all"]), ring,
                      t(sdf.Ellipsoid(p["egg_radii"], material=0), p["egg_offset"]),
                      t(sdf.Box(p["cube_half_extents"], material=1), p["cube_offset"]),
                      t(sdf.Sphere(p["ball_radius"], material=0), p["ball_offset"]))
