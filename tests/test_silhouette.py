@@ -239,3 +239,18 @@ def test_debiased_loss_gradient_of_a_wrong_disc_matches_finite_differences(radiu
     assert grads["outline"] == pytest.approx(reference, rel=0.03)
     if radius > 1.0:
         assert 0.0 < grads["ramp"] < 0.5 * reference
+
+
+def test_outline_mode_gradient_is_the_same_on_the_fused_backend():
+    """The outline term travels as two more per-sample outputs of the kernel: the fused
+    backend's recorded replay gives the "jax" path's gradient (float32, 2 spp)."""
+    camera = jr.PerspectiveCamera(eye=(0.0, 0.0, -5.0), target=(0.03, 0.01, 0.0), fov=30.0,
+                                  width=12, height=12)
+    weights = jax.random.uniform(jax.random.PRNGKey(0), (12, 12, 3))
+    grads = []
+    for backend in ("jax", "fused"):
+        settings = jr.RenderSettings(silhouette=True, silhouette_gradient="outline", shadows="none",
+                                     backend=backend, spp=2)
+        loss = lambda r: jnp.sum(weights * jr.render(_sphere(r), camera, settings).rgb)  # noqa: E731
+        grads.append(float(jax.grad(loss)(jnp.asarray(1.0))))
+    assert grads[1] == pytest.approx(grads[0], rel=1e-3)
