@@ -70,11 +70,10 @@ def _render(scene, camera, settings):
         devices = sharding.local_devices(settings.devices)
         out = sharding.shard_image(trace_block, (scene, camera), samples, (h, w * spp), devices,
                                    split=settings.split)
-    outline = {k: out.pop(k) for k in _outline_keys(settings)}
+    outline = [out.pop(k).reshape(h * w * spp, -1) for k in _outline_keys(settings)]
     out = {k: v.reshape((h, w, spp) + v.shape[2:]).mean(axis=2) for k, v in out.items()}
-    if _outline_keys(settings):
-        terms, xy = (outline.pop(k).reshape(h * w * spp, -1) for k in _outline_keys(settings))
-        out["rgb"] = out["rgb"] + silhouette.splat_outline(terms, xy, h, w, spp)
+    if outline:  # the outline terms onto the outlines' pixels
+        out["rgb"] = out["rgb"] + silhouette.splat_outline(*outline, h, w, spp)
     if settings.devices != 1:
         out = sharding.image_sharded(out, devices, split=settings.split)
     return Image(**out)
