@@ -175,18 +175,28 @@ def _replay(kernel, params, samples, entries, kinds):
     so the transpose of that broadcast — the sum of every sample's cotangent — is one
     plain reduction of a materialised [samples, ...] array instead of XLA fusing the
     whole backward pass into narrow column reductions (on an H200, Warp scene
-    2048×1024, jax 0.11.2: value_and_grad 8.8 → 3.3 ms)."""
+    2048×1024, jax 0.11.2: value_and_grad 8.8 → 3.3 ms).
+
+    The floats of large arrays (voxel grids, height maps, textures: over
+    `PER_SAMPLE_MAX` values) stay shared: each sample reads a few of them, so their
+    cotangent is a scatter-add into one array, where per-sample copies would take
+    samples × size (a 129³ grid at 128×128: 131 GiB)."""
     dyn, static = eqx.partition(params, eqx.is_inexact_array)
+    small, large = eqx.partition(dyn, lambda x: x.size <= PER_SAMPLE_MAX)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
     n = samples.shape[0]
 
     def one(d, s, entry):
-        scene, camera = eqx.combine(d, static)
+        scene, camera = eqx.combine(d, large, static)
         with tape.replaying(entry):
             return kernel((*camera.generate_ray(s[0], s[1]), s), scene, camera)
 
-    per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, n), dyn)
+    per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, n), small)
     return jax.vmap(one)(per_sample, samples, entries)
+
+
+PER_SAMPLE_MAX = 4096
+"""The largest float leaf `_replay` copies per sample (64 stacked spheres hold 256)."""
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
