@@ -169,6 +169,11 @@ def _softplus(x):
 _softplus.defjvp(lambda primals, tangents: (_softplus(primals[0]),
                                             jax.nn.sigmoid(primals[0]) * tangents[0]))
 
+def _side(p, a, b):
+    """A side decided once (`sdf.primitives.sd_cone`): a barrier on a predicate."""
+    return jnp.where(lax.optimization_barrier(a * b + p[0] > 0.0), a, -b)
+
+
 CONTROL = [
     ("while", "while", _march, {}),
     ("while_unroll_3", "while", _march, dict(unroll=3)),
@@ -183,6 +188,9 @@ CONTROL = [
     ("jit_call_materialized", "jit", lambda p, a, b: jax.jit(lambda x: x * p[1])(a) + b,
      dict(materialize=True)),
     ("custom_jvp", "custom_jvp_call", lambda p, a, b: _softplus(a * b), {}),
+    ("barrier", "optimization_barrier", lambda p, a, b: _side(p, a, b), {}),
+    ("barrier_materialized", "optimization_barrier", lambda p, a, b: _side(p, a, b),
+     dict(materialize=True)),
 ]
 
 
@@ -263,3 +271,21 @@ def test_erfc_substitute_matches_jax():
     assert "erfc" in primitives(closed.jaxpr)
     (got,) = eval_lanes(closed, [_lane(x)], x.shape[0], unsupported=("erfc",))
     np.testing.assert_allclose(np.asarray(got[()]), np.asarray(jss.erfc(x)), rtol=1.2e-7)
+
+
+def test_a_barrier_materialises_its_values_once():
+    """With `materialize`, the lanes of an `optimization_barrier` are computed once (a
+    reduction XLA does not fuse into its consumers, `control._materialise`), so every
+    consumer reads one rounding; without it they pass through."""
+    params, a, b = inputs()
+    closed = jax.make_jaxpr(_side)(params, a[0], b[0])
+
+    def lowered(materialize):
+        def lanes(params, a, b):
+            outs = eval_lanes(closed, [lanes_of(params), _lane(a), _lane(b)], N,
+                              materialize=materialize)
+            return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
+
+        return primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
+
+    assert "reduce_or" in lowered(True) and "reduce_or" not in lowered(False)

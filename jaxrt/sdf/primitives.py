@@ -140,8 +140,11 @@ def sd_cone(p, radius, height):
     # a == min(a, b), and XLA contracts a sum of products into fused multiply–adds in
     # some fusions and not in others: under jit neither operand passed that test.)
     d = _guarded_sqrt(minimum(ar * ar + ay * ay, br * br + by * by), 0.0)
+    # The side, decided once: s cancels to within rounding at the surface, and copies of
+    # it that a compiler rounds differently (fused multiply–adds in some fusions) would
+    # give a normal's components from opposite sides (a non-unit normal).
     s = jnp.maximum(r * height + wy * radius, -by)
-    return select(s > 0.0, d, -d)
+    return select(jax.lax.optimization_barrier(s > 0.0), d, -d)
 
 
 def sd_capsule(p, half_height, radius):

@@ -163,4 +163,11 @@ def _dot_general(eqn, ins, ctx):
 
 
 def _optimization_barrier(eqn, ins, ctx):
+    """The values, computed once (`control._barrier`) where the program materialises
+    (`materialize`, outside loops): every consumer then reads the same rounding, which
+    is what a barrier in a jaxrt formula asks for (`sdf.primitives.sd_cone`'s side)."""
+    if ctx.materialize and ctx.loop_depth == 0:
+        from .control import _barrier
+
+        return _barrier(list(ins))
     return list(ins)
