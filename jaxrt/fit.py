@@ -255,6 +255,24 @@ def adam(learning_rate=1e-2, steps=None, *, kind="cosine", warmup=0, end_factor=
     return opt if scales is None else optax.chain(opt, scale_by_leaf(scales))
 
 
+def reset_moments(state):
+    """An optax state with every Adam moment estimate forgotten: each
+    `optax.ScaleByAdamState` back to its initial value (m = v = 0, count 0, so that the
+    bias correction 1/(1 − β^t) restarts too); schedules keep their step counts.
+
+    For a fit whose parameters are moved by something other than the optimiser (a grid
+    re-distanced, `jaxrt.sdf.redistance`): the moments gathered on the old values would
+    steer the next steps on the new ones."""
+
+    def reset(s):
+        if isinstance(s, optax.ScaleByAdamState):
+            zeros = lambda t: jax.tree.map(jnp.zeros_like, t)  # noqa: E731
+            return s._replace(count=jnp.zeros_like(s.count), mu=zeros(s.mu), nu=zeros(s.nu))
+        return s
+
+    return jax.tree.map(reset, state, is_leaf=lambda s: isinstance(s, optax.ScaleByAdamState))
+
+
 # --------------------------------------------------------------------------- results
 
 

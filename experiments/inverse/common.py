@@ -62,8 +62,12 @@ def parse_args(name, argv=None, doc=None):
     p.add_argument("--views", type=int, default=None, help="number of views (overrides the config)")
     p.add_argument("--steps", type=int, default=None, help="Adam steps (overrides the config)")
     p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
+    p.add_argument("--refine-steps", type=int, default=None,
+                   help="BFGS steps of the [refine] phase after Adam (0: none; overrides the config)")
     args = p.parse_args(argv)
     cfg = load_config(args.config, args.quick)
+    if args.refine_steps is not None:
+        cfg.setdefault("refine", {})["steps"] = args.refine_steps
     for key, value in (("size", args.size), ("views", args.views), ("steps", args.steps)):
         if value is not None:
             cfg["run"][key] = value
@@ -236,12 +240,16 @@ def run(study, cfg, out, fresh=False):
                         checkpoint_every=f.get("checkpoint_every", 50), progress=True,
                         refresh=refresh)
     t_fit = time.perf_counter() - t1
-    fitted = {k: np.asarray(v) for k, v in result.params.items()}
+    final, refined = result.params, None
+    if cfg.get("refine", {}).get("steps", 0) > 0:
+        final, refined = refine(study, cfg, result.params, targets)
+        errors.append((result.steps + refined["steps"], element_errors(final, study.truth, study.floors)))
+    fitted = {k: np.asarray(v) for k, v in final.items()}
     # the estimator's floor: the fit's loss at the true values (0 without bias)
     loss_truth = float(jr.fit.fit(loss, study.truth, optimiser, max_steps=0,
                                   transforms=study.transforms, refresh=refresh).loss)
     err = element_errors(fitted, study.truth, study.floors)
-    if errors[-1][0] != result.steps:  # a resumed run's last point
+    if refined is None and errors[-1][0] != result.steps:  # a resumed run's last point
         errors.append((result.steps, err))
     metrics = {"max_parameter_error": float(err.max()), "median_parameter_error": float(np.median(err))}
     if study.metrics is not None:
@@ -254,7 +262,7 @@ def run(study, cfg, out, fresh=False):
 
     # images: start and fit with the target settings (what a viewer compares)
     start_rgb = forward(start)
-    fit_scene, fit_cameras = study.build(result.params)
+    fit_scene, fit_cameras = study.build(final)
     fit_images = jr.render_views(fit_scene, fit_cameras, target_settings, devices=_devices(cfg))
     one = jr.views.view(fit_cameras, 0)
     jr.io.write_exr(out / "fitted.exr", jax.tree.map(lambda x: x[0], fit_images))
@@ -270,10 +278,12 @@ def run(study, cfg, out, fresh=False):
     results = {
         "study": study.name, "quick": cfg["quick"], "size": r["size"], "views": int(targets.shape[0]),
         "steps": int(result.steps), "stopped": result.result, "loss_start": float(result.history[0]),
-        "debias": debias, "loss_fit": float(result.loss), "loss_truth": loss_truth, "metrics": metrics, "metrics_start": start_metrics,
+        "debias": debias, "loss_fit": float(result.loss), "loss_truth": loss_truth, "refine": refined,
+        "metrics": metrics, "metrics_start": start_metrics,
         "targets": cfg["targets"], "met": met,
         "seconds": {"targets": round(t_target, 2), "first_step": round(timing.get("first_step", float("nan")), 2),
-                    "fit": round(t_fit, 2), "total": round(time.perf_counter() - t0, 2)},
+                    "fit": round(t_fit, 2), "refine": refined and refined["seconds"],
+                    "total": round(time.perf_counter() - t0, 2)},
         "machine": machine(), "parameters": rows,
         "error_history": {"steps": [s for s, _ in errors], "max": [float(e.max()) for _, e in errors]},
     }
@@ -282,6 +292,56 @@ def run(study, cfg, out, fresh=False):
     (out / "results.md").write_text(md)
     print(md)
     return results
+
+
+def refine(study, cfg, params, targets):
+    """The `[refine]` phase after Adam: BFGS (`optimistix.BFGS`, one compiled program)
+    on the loss of the `[refine] settings` table's renders (default `target_settings`,
+    the targets' own estimator: its value and its gradient belong to one function, and
+    at the truth it is 0), over the parameters named in `free` (default all; the rest
+    held at Adam's values), for at most `steps` steps (line-search evaluations
+    included). With `gradient_settings` (a settings table: "fit_settings") the image
+    is the debiased one of `run` within the program, I_g + stop_gradient(I − I_g): the
+    value of the `settings` render and the outline-aware gradient of the other. Near the minimum Adam's steps follow its schedule, not the curvature,
+    and a flat valley (a conductor's η against κ) stalls it; BFGS's inverse-Hessian
+    estimate walks along it. The loss is divided by its value at the start, so that the
+    solver's tolerances (`rtol`, `atol`, on the parameters and on the loss) are relative.
+
+    Returns (params, info): info has the steps, the losses before and after (and at the
+    truth, the estimator's floor), why the solver stopped and the seconds taken."""
+    import optimistix as optx
+
+    r = cfg["refine"]
+    render_settings = settings(cfg, r.get("settings", "target_settings"))
+    gradient_settings = settings(cfg, r["gradient_settings"]) if r.get("gradient_settings") else None
+    free = list(r.get("free", study.truth))
+    unknown = [k for k in free if k not in study.truth]
+    if unknown:
+        raise ConfigError(f"refine.free = {free}: {unknown} are not parameters of the study "
+                          f"(expected names from {list(study.truth)})")
+    held = {k: v for k, v in params.items() if k not in free}
+
+    def loss(p, scale):
+        scene, cameras = study.build({**held, **p})
+        image = jr.render_views(scene, cameras, render_settings, devices=_devices(cfg)).rgb
+        if gradient_settings is not None:  # its values, the gradient of the other render's
+            estimate = jr.render_views(scene, cameras, gradient_settings, devices=_devices(cfg)).rgb
+            image = estimate + jax.lax.stop_gradient(image - estimate)
+        return jr.fit.l2_loss(image, targets) / scale
+
+    t = time.perf_counter()
+    start = {k: params[k] for k in free}
+    scale = jnp.maximum(loss(start, 1.0), 1e-30)
+    solver = optx.BFGS(rtol=r.get("rtol", 1e-8), atol=r.get("atol", 1e-12))
+    transforms = {k: study.transforms.get(k) for k in free}
+    out = jr.fit.fit(loss, start, solver, args=scale, max_steps=r["steps"], transforms=transforms)
+    at_truth = float(loss({k: study.truth[k] for k in free}, 1.0))
+    info = {"steps": out.steps, "free": free, "settings": r.get("settings", "target_settings"),
+            "stopped": "converged" if out.result == optx.RESULTS.successful else "max_steps", "loss_start": float(scale), "loss_end": float(out.loss * scale),
+            "loss_truth": at_truth, "seconds": round(time.perf_counter() - t, 2)}
+    print(f"refine: {info['steps']} BFGS steps, loss {info['loss_start']:.3e} → {info['loss_end']:.3e} "
+          f"(at the truth {at_truth:.3e}), {info['seconds']} s", flush=True)
+    return {**params, **out.params}, info
 
 
 def _flat(params, order):
@@ -300,6 +360,11 @@ def markdown(res):
              f"compilation, {res['seconds']['fit']} s fit) on {res['machine']['device']} "
              f"({res['machine']['backend']}, {res['machine']['cpu_count']} CPUs).", "",
              "| metric | start | fit | target | met |", "|---|---|---|---|---|"]
+    if res.get("refine"):
+        r = res["refine"]
+        lines[3:3] = ["", f"Then {r['steps']} BFGS steps on the loss of `{r['settings']}` over "
+                      f"{', '.join(r['free'])} (stopped: {r['stopped']}): loss {r['loss_start']:.3e} → "
+                      f"{r['loss_end']:.3e} (at the true values: {r['loss_truth']:.3e}), {r['seconds']} s."]
     for k, v in res["metrics"].items():
         t = res["targets"].get(k)
         lines.append(f"| {k} | {res['metrics_start'].get(k, float('nan')):.4g} | {v:.4g} | "

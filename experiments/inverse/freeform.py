@@ -23,8 +23,9 @@ about `silhouette_width` pixels, a bias that the fit would undo by shrinking the
 the loss is I_sil + stop_gradient(I_point − I_sil): its value is a point-sampled
 render at `unbiased_spp` spp with `silhouette = false` (the targets' estimator, so the
 residual vanishes at the true shape), its gradient the silhouette-aware one. Every `redistance_every` steps, and at
-the end of each stage, `jaxrt.sdf.redistance` makes the samples a distance field again
-(Adam's moments are kept). Stages double the cells, (n − 1) → 2 (n − 1), and start from
+the end of each stage (only there with `redistance_every = 0`), `jaxrt.sdf.redistance`
+makes the samples a distance field again; with `reset_moments = true` Adam's moments
+are then forgotten (`jaxrt.fit.reset_moments`), else kept. Stages double the cells, (n − 1) → 2 (n − 1), and start from
 `jaxrt.sdf.upsample` of the previous one, which is exact: the coarse grid is a fine grid
 with the same interpolant. So the renderer and its gradient are compiled once, for the
 finest grid: a coarse stage renders its grid upsampled to the finest resolution (the
@@ -47,6 +48,7 @@ file) and config.json (the resolved config).
 
     python experiments/inverse/freeform.py [--quick] [--config ...] [--out DIR]
         [--views V] [--width W] [--height H] [--stages 33,65,129] [--iterations 250,250,150]
+        [--set KEY=VALUE ...]   (any key of the config, VALUE a TOML value)
 """
 
 import argparse
@@ -309,8 +311,11 @@ def fit(cfg, log=print):
             if compile_s is None:
                 compile_s = time.perf_counter() - t_it
                 log(f"first step (compiles the renderer's gradient): {compile_s:.1f} s")
-            if (it + 1) % cfg["redistance_every"] == 0 or it + 1 == iters:
+            every = cfg["redistance_every"]
+            if (every and (it + 1) % every == 0) or it + 1 == iters:
                 values = sdf.redistance(grid(cfg, values)).values
+                if cfg.get("reset_moments", False):
+                    state = jr.fit.reset_moments(state)
             history["step"].append(step)
             history["loss"].append(loss)
             history["eikonal"].append(float(e))
@@ -470,8 +475,15 @@ def main(argv=None):
     parser.add_argument("--height", type=int)
     parser.add_argument("--stages", type=_ints, help="vertex counts per stage, e.g. 33,65,129")
     parser.add_argument("--iterations", type=_ints, help="Adam steps per stage, e.g. 250,250,150")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="set a config key (VALUE a TOML value), e.g. reset_moments=true")
     args = parser.parse_args(argv)
     cfg = load_config(args.config, args.quick)
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key not in cfg:
+            parser.error(f"--set {item}: {key!r} is not a key of {args.config}")
+        cfg[key] = tomllib.loads(f"v = {value}")["v"]
     for key in ("views", "width", "height", "stages", "iterations"):
         if getattr(args, key) is not None:
             cfg[key] = getattr(args, key)
