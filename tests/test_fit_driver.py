@@ -92,6 +92,29 @@ def test_per_group_learning_rates():
     assert float(res.params["b"]) == 0.5 and float(res.params["a"]) > 1.5
 
 
+def test_reset_moments_restarts_adam_but_not_its_schedule():
+    """After k steps and `reset_moments`, Adam's next step is a first step again (every
+    leaf moves by its rate, m̂/√v̂ = ±1 whatever the gradients so far), at the rate the
+    schedule has reached after k steps, not its initial one; per-leaf scales stay."""
+    steps, k = 10, 6
+    rate = fit.schedule(0.1, steps, kind="cosine")
+    opt = fit.adam(0.1, steps, kind="cosine", scales={"a": 1.0, "b": 0.25})
+    params = {"a": jnp.asarray(1.0), "b": jnp.asarray(0.5)}
+    state = opt.init(params)
+    for i in range(k):  # gradients of changing sizes and signs fill the moments
+        g = {"a": jnp.asarray((-2.0) ** i), "b": jnp.asarray(3.0 + i)}
+        updates, state = opt.update(g, state, params)
+        params = optax.apply_updates(params, updates)
+    g = {"a": jnp.asarray(0.5), "b": jnp.asarray(-7.0)}
+    kept, _ = opt.update(g, state, params)
+    fresh, _ = opt.update(g, fit.reset_moments(state), params)
+    want = {"a": -float(rate(k)), "b": 0.25 * float(rate(k))}
+    for name in ("a", "b"):
+        assert float(fresh[name]) == pytest.approx(want[name], rel=1e-4), name
+        assert float(kept[name]) != pytest.approx(want[name], rel=1e-2), name  # the moments mattered
+    assert float(rate(k)) < 0.09  # the schedule had moved on
+
+
 def test_callback_sees_the_loss_history_and_can_stop_the_fit():
     calls = []
 
