@@ -18,7 +18,8 @@ every study:
    I = I_fit + stop_gradient(I_target(θ) − I_fit), so that the true values are a
    stationary point whatever the silhouette term's dilation (a straight-through
    estimator; one more forward render per step, by the targets' own compiled program
-   outside the gradient step: `jaxrt.fit.fit(refresh=...)`);
+   outside the gradient step: `jaxrt.fit.fit(refresh=...)`); then, with a `[refine]`
+   table of `steps` > 0, BFGS from Adam's result (`refine`);
 4. outputs under the output folder: results.json and results.md (every parameter:
    truth, start, fit, error; the metrics and whether they meet their targets; timing
    and machine), curves.png (loss and parameter errors against steps), grid.png (rows
@@ -43,6 +44,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 import jaxrt as jr
 from jaxrt.config import ConfigError
@@ -302,15 +304,16 @@ def refine(study, cfg, params, targets):
     held at Adam's values), for at most `steps` steps (line-search evaluations
     included). With `gradient_settings` (a settings table: "fit_settings") the image
     is the debiased one of `run` within the program, I_g + stop_gradient(I − I_g): the
-    value of the `settings` render and the outline-aware gradient of the other. Near the minimum Adam's steps follow its schedule, not the curvature,
-    and a flat valley (a conductor's η against κ) stalls it; BFGS's inverse-Hessian
-    estimate walks along it. The loss is divided by its value at the start, so that the
-    solver's tolerances (`rtol`, `atol`, on the parameters and on the loss) are relative.
+    value of the `settings` render and the outline-aware gradient of the other.
+
+    Near the minimum Adam's steps follow its schedule, not the curvature; BFGS's
+    inverse-Hessian estimate follows the curvature (a valley such as a conductor's η
+    against κ; docs/inverse.md says what it did there). The loss is divided by its
+    value at the start, so that the solver's tolerances (`rtol`, `atol`, on the
+    parameters and on the loss) are relative.
 
     Returns (params, info): info has the steps, the losses before and after (and at the
     truth, the estimator's floor), why the solver stopped and the seconds taken."""
-    import optimistix as optx
-
     r = cfg["refine"]
     render_settings = settings(cfg, r.get("settings", "target_settings"))
     gradient_settings = settings(cfg, r["gradient_settings"]) if r.get("gradient_settings") else None
@@ -337,8 +340,8 @@ def refine(study, cfg, params, targets):
     out = jr.fit.fit(loss, start, solver, args=scale, max_steps=r["steps"], transforms=transforms)
     at_truth = float(loss({k: study.truth[k] for k in free}, 1.0))
     info = {"steps": out.steps, "free": free, "settings": r.get("settings", "target_settings"),
-            "stopped": "converged" if out.result == optx.RESULTS.successful else "max_steps", "loss_start": float(scale), "loss_end": float(out.loss * scale),
-            "loss_truth": at_truth, "seconds": round(time.perf_counter() - t, 2)}
+            "stopped": "converged" if out.result == optx.RESULTS.successful else "max_steps",
+            "loss_start": float(scale), "loss_end": float(out.loss * scale), "loss_truth": at_truth, "seconds": round(time.perf_counter() - t, 2)}
     print(f"refine: {info['steps']} BFGS steps, loss {info['loss_start']:.3e} → {info['loss_end']:.3e} "
           f"(at the truth {at_truth:.3e}), {info['seconds']} s", flush=True)
     return {**params, **out.params}, info
