@@ -25,8 +25,8 @@ render at `unbiased_spp` spp with `silhouette = false` (the targets' estimator, 
 residual vanishes at the true shape), its gradient the silhouette-aware one. Every `redistance_every` steps, and at
 the end of each stage (only there with `redistance_every = 0`), `jaxrt.sdf.redistance`
 makes the samples a distance field again; with `reset_moments = true` Adam's moments
-are then forgotten (`jaxrt.fit.reset_moments`), else kept. Stages double the cells, (n − 1) → 2 (n − 1), and start from
-`jaxrt.sdf.upsample` of the previous one, which is exact: the coarse grid is a fine grid
+are then forgotten (`jaxrt.fit.reset_moments`), else kept. Stages double the cells,
+(n − 1) → 2 (n − 1), and start from `jaxrt.sdf.upsample` of the previous one, which is exact: the coarse grid is a fine grid
 with the same interpolant. So the renderer and its gradient are compiled once, for the
 finest grid: a coarse stage renders its grid upsampled to the finest resolution (the
 same shape) and pulls the gradient back through the (linear) upsampling.
