@@ -245,14 +245,14 @@ def run(study, cfg, out, fresh=False):
     final, refined = result.params, None
     if cfg.get("refine", {}).get("steps", 0) > 0:
         final, refined = refine(study, cfg, result.params, targets)
-        errors.append((result.steps + refined["steps"], element_errors(final, study.truth, study.floors)))
     fitted = {k: np.asarray(v) for k, v in final.items()}
     # the estimator's floor: the fit's loss at the true values (0 without bias)
     loss_truth = float(jr.fit.fit(loss, study.truth, optimiser, max_steps=0,
                                   transforms=study.transforms, refresh=refresh).loss)
     err = element_errors(fitted, study.truth, study.floors)
-    if refined is None and errors[-1][0] != result.steps:  # a resumed run's last point
-        errors.append((result.steps, err))
+    last = result.steps + (refined["steps"] if refined else 0)
+    if errors[-1][0] != last:  # a resumed run's or the refinement's last point
+        errors.append((last, err))
     metrics = {"max_parameter_error": float(err.max()), "median_parameter_error": float(np.median(err))}
     if study.metrics is not None:
         metrics.update({k: float(v) for k, v in study.metrics(fitted, study.truth).items()})
@@ -307,8 +307,8 @@ def refine(study, cfg, params, targets):
     value of the `settings` render and the outline-aware gradient of the other.
 
     Near the minimum Adam's steps follow its schedule, not the curvature; BFGS's
-    inverse-Hessian estimate follows the curvature (a valley such as a conductor's η
-    against κ; docs/inverse.md says what it did there). The loss is divided by its
+    inverse-Hessian estimate follows the curvature (docs/inverse.md says what it did on
+    the materials and CSG studies: nothing kept). The loss is divided by its
     value at the start, so that the solver's tolerances (`rtol`, `atol`, on the
     parameters and on the loss) are relative.
 
@@ -341,7 +341,8 @@ def refine(study, cfg, params, targets):
     at_truth = float(loss({k: study.truth[k] for k in free}, 1.0))
     info = {"steps": out.steps, "free": free, "settings": r.get("settings", "target_settings"),
             "stopped": "converged" if out.result == optx.RESULTS.successful else "max_steps",
-            "loss_start": float(scale), "loss_end": float(out.loss * scale), "loss_truth": at_truth, "seconds": round(time.perf_counter() - t, 2)}
+            "loss_start": float(scale), "loss_end": float(out.loss * scale), "loss_truth": at_truth,
+            "seconds": round(time.perf_counter() - t, 2)}
     print(f"refine: {info['steps']} BFGS steps, loss {info['loss_start']:.3e} → {info['loss_end']:.3e} "
           f"(at the truth {at_truth:.3e}), {info['seconds']} s", flush=True)
     return {**params, **out.params}, info

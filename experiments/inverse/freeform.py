@@ -22,12 +22,13 @@ about `silhouette_width` pixels, a bias that the fit would undo by shrinking the
 (at 24×24, a pixel is 3% of the shape's size); with `unbiased_spp` > 0 the image in
 the loss is I_sil + stop_gradient(I_point − I_sil): its value is a point-sampled
 render at `unbiased_spp` spp with `silhouette = false` (the targets' estimator, so the
-residual vanishes at the true shape), its gradient the silhouette-aware one. Every `redistance_every` steps, and at
-the end of each stage (only there with `redistance_every = 0`), `jaxrt.sdf.redistance`
-makes the samples a distance field again; with `reset_moments = true` Adam's moments
-are then forgotten (`jaxrt.fit.reset_moments`), else kept. Stages double the cells,
-(n − 1) → 2 (n − 1), and start from `jaxrt.sdf.upsample` of the previous one, which is exact: the coarse grid is a fine grid
-with the same interpolant. So the renderer and its gradient are compiled once, for the
+residual vanishes at the true shape), its gradient the silhouette-aware one. Every
+`redistance_every` steps, and at the end of each stage (only there with
+`redistance_every = 0`), `jaxrt.sdf.redistance` makes the samples a distance field
+again; with `reset_moments = true` Adam's moments are then forgotten
+(`jaxrt.fit.reset_moments`), else kept. Stages double the cells, (n − 1) → 2 (n − 1),
+and start from `jaxrt.sdf.upsample` of the previous one, which is exact: the coarse grid
+is a fine grid with the same interpolant. So the renderer and its gradient are compiled once, for the
 finest grid: a coarse stage renders its grid upsampled to the finest resolution (the
 same shape) and pulls the gradient back through the (linear) upsampling.
 
