@@ -12,6 +12,7 @@ modelled in tiny or huge units, dials past their sensible range.
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -147,6 +148,59 @@ def test_scene_scale_does_not_change_the_image(shadows):
     for s in (1e-3, 1e3):
         rmse = float(np.sqrt(np.mean((render_scaled(s, settings) - ref) ** 2)))
         assert rmse <= 0.005, (shadows, s, rmse)
+
+
+def field_scene(s):
+    """A Cook–Torrance sphere over a sine height field (amplitude, wavelength and the
+    march's min_step in units of s), a point light of intensity ∝ s²."""
+    field = jr.HeightField(jr.heightfield.SineHeight(0.15 * s, frequency=(2.0 / s, 1.3 / s),
+                                                     phase=(0.3, 0.2), offset=-0.6 * s),
+                           material=1, min_step=0.01 * s)
+    surface = jr.sdf.Translate(jr.sdf.Sphere(radius=0.7 * s, material=0), offset=(0.2 * s, 0.1 * s, 0.0))
+    return jr.Scene(surface=surface,
+                    materials=[jr.bsdf.CookTorrance(distribution=jr.bsdf.GGX(0.3)),
+                               jr.bsdf.Lambert(albedo=(0.5, 0.6, 0.4))],
+                    lights=[jr.PointLight(position=(1.5 * s, 3.0 * s, -2.0 * s),
+                                          intensity=(25.0 * s * s,) * 3)],
+                    background=(0.2, 0.25, 0.35), heightfields=[field])
+
+
+def field_camera(s, width=32, height=20):
+    return jr.PerspectiveCamera(eye=(0.0, 0.9 * s, -3.2 * s), target=(0.0, -0.1 * s, 0.0),
+                                fov=50.0, width=width, height=height)
+
+
+@pytest.mark.parametrize("shadows", ["soft", pytest.param("hard", marks=pytest.mark.slow)])
+def test_height_fields_and_silhouettes_do_not_change_with_scale(shadows):
+    """Issue 14: a sphere over a height field, with the silhouette-aware coverage on, at
+    s = 1e-3, 1, 1e3 in float32: the same image (RMSE ≤ 0.005, the background seen past
+    the sphere's outline and the field's ridges included), and the gradients of the
+    image's mean with respect to the sphere's radius and the field's amplitude scale as
+    1/s (the silhouette term carries the radius's gradient along the outline): within
+    0.2 % in float32 (measured 1e-4)."""
+    settings = scale_free_settings(shadows).replace(silhouette=True, max_depth=0)
+
+    def mean_and_grads(s):
+        scene, camera = field_scene(s), field_camera(s)
+
+        def mean(radius, amplitude):
+            surface = eqx.tree_at(lambda t: t.child.radius, scene.surface, radius)
+            fields = [eqx.tree_at(lambda f: f.height.amplitude, scene.heightfields[0], amplitude)]
+            return jnp.mean(jr.render(eqx.tree_at(lambda sc: (sc.surface, sc.heightfields), scene,
+                                                  (surface, tuple(fields))), camera, settings).rgb)
+
+        radius, amplitude = scene.surface.child.radius, scene.heightfields[0].height.amplitude
+        image = np.asarray(jr.render(scene, camera, settings).rgb)
+        grads = jax.grad(mean, argnums=(0, 1))(radius, amplitude)
+        return image, np.array([float(g) for g in grads]) * s
+
+    ref, g_ref = mean_and_grads(1.0)
+    assert np.all(np.isfinite(ref)) and ref.std() > 0.05 and np.all(np.abs(g_ref) > 1e-3), g_ref
+    for s in (1e-3, 1e3):
+        image, g = mean_and_grads(s)
+        rmse = float(np.sqrt(np.mean((image - ref) ** 2)))
+        assert rmse <= 0.005, (shadows, s, rmse)
+        np.testing.assert_allclose(g, g_ref, rtol=2e-3, err_msg=f"{shadows}, s = {s}")
 
 
 # --------------------------------------------------------------------------- dial sweep
