@@ -19,7 +19,7 @@ every study:
    stationary point whatever the silhouette term's dilation (a straight-through
    estimator; one more forward render per step, by the targets' own compiled program
    outside the gradient step: `jaxrt.fit.fit(refresh=...)`); then, with a `[refine]`
-   table of `steps` > 0, BFGS from Adam's result (`refine`);
+   table of `steps` > 0, BFGS or Levenberg–Marquardt from Adam's result (`refine`);
 4. outputs under the output folder: results.json and results.md (every parameter:
    truth, start, fit, error; the metrics and whether they meet their targets; timing
    and machine), curves.png (loss and parameter errors against steps), grid.png (rows
@@ -65,7 +65,7 @@ def parse_args(name, argv=None, doc=None):
     p.add_argument("--steps", type=int, default=None, help="Adam steps (overrides the config)")
     p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--refine-steps", type=int, default=None,
-                   help="BFGS steps of the [refine] phase after Adam (0: none; overrides the config)")
+                   help="steps of the [refine] phase after Adam (0: none; overrides the config)")
     args = p.parse_args(argv)
     cfg = load_config(args.config, args.quick)
     if args.refine_steps is not None:
@@ -297,24 +297,37 @@ def run(study, cfg, out, fresh=False):
 
 
 def refine(study, cfg, params, targets):
-    """The `[refine]` phase after Adam: BFGS (`optimistix.BFGS`, one compiled program)
-    on the loss of the `[refine] settings` table's renders (default `target_settings`,
+    """The `[refine]` phase after Adam: a second-order solver in one compiled program,
+    on the images of the `[refine] settings` table's renders (default `target_settings`,
     the targets' own estimator: its value and its gradient belong to one function, and
-    at the truth it is 0), over the parameters named in `free` (default all; the rest
-    held at Adam's values), for at most `steps` steps (line-search evaluations
-    included). With `gradient_settings` (a settings table: "fit_settings") the image
-    is the debiased one of `run` within the program, I_g + stop_gradient(I − I_g): the
-    value of the `settings` render and the outline-aware gradient of the other.
+    at the truth its loss is 0), over the parameters named in `free` (default all; the
+    rest held at Adam's values), for at most `steps` steps. With `gradient_settings` (a
+    settings table: "fit_settings") the image is the debiased one of `run` within the
+    program, I_g + stop_gradient(I − I_g): the value of the `settings` render and the
+    outline-aware derivatives of the other.
 
-    Near the minimum Adam's steps follow its schedule, not the curvature; BFGS's
-    inverse-Hessian estimate follows the curvature (docs/inverse.md says what it did on
-    the materials and CSG studies: nothing kept). The loss is divided by its
-    value at the start, so that the solver's tolerances (`rtol`, `atol`, on the
-    parameters and on the loss) are relative.
+    `method`:
+    - "bfgs" (default): `optimistix.BFGS` on the L2 loss (line-search evaluations count
+      as steps). Its inverse-Hessian estimate follows the curvature where Adam's steps
+      follow their schedule.
+    - "levenberg-marquardt": `optimistix.LevenbergMarquardt` on the residuals
+      I(θ) − target, through `jaxrt.fit.fit_least_squares`. Each step forms the
+      Jacobian (one forward-mode pass per free float) and solves the damped normal
+      equations (JᵀJ + λD) δ = −Jᵀr by QR: a valley that is flat in the loss (the
+      conductor's η against κ, docs/inverse.md) but not singular in J is crossed in a
+      few steps, where a gradient method follows it for thousands. Moré (1978), "The
+      Levenberg–Marquardt algorithm: implementation and theory".
 
-    Returns (params, info): info has the steps, the losses before and after (and at the
-    truth, the estimator's floor), why the solver stopped and the seconds taken."""
+    The loss (residuals) is divided by its value at the start (its square root), so
+    that the solver's tolerances (`rtol`, `atol`) are relative.
+
+    Returns (params, info): info has the method, the steps, the losses before and after
+    (and at the truth, the estimator's floor), why the solver stopped and the seconds
+    taken."""
     r = cfg["refine"]
+    method = r.get("method", "bfgs")
+    if method not in ("bfgs", "levenberg-marquardt"):
+        raise ConfigError(f"refine.method = {method!r}, expected \"bfgs\" or \"levenberg-marquardt\"")
     render_settings = settings(cfg, r.get("settings", "target_settings"))
     gradient_settings = settings(cfg, r["gradient_settings"]) if r.get("gradient_settings") else None
     free = list(r.get("free", study.truth))
@@ -324,26 +337,39 @@ def refine(study, cfg, params, targets):
                           f"(expected names from {list(study.truth)})")
     held = {k: v for k, v in params.items() if k not in free}
 
-    def loss(p, scale):
+    def image(p):
         scene, cameras = study.build({**held, **p})
-        image = jr.render_views(scene, cameras, render_settings, devices=_devices(cfg)).rgb
-        if gradient_settings is not None:  # its values, the gradient of the other render's
+        rgb = jr.render_views(scene, cameras, render_settings, devices=_devices(cfg)).rgb
+        if gradient_settings is not None:  # its values, the derivatives of the other render's
             estimate = jr.render_views(scene, cameras, gradient_settings, devices=_devices(cfg)).rgb
-            image = estimate + jax.lax.stop_gradient(image - estimate)
-        return jr.fit.l2_loss(image, targets) / scale
+            rgb = estimate + jax.lax.stop_gradient(rgb - estimate)
+        return rgb
+
+    def loss(p, scale):
+        return jr.fit.l2_loss(image(p), targets) / scale
+
+    def residuals(p, scale):  # Σ r² = loss / scale
+        return jnp.ravel(image(p) - targets) / jnp.sqrt(scale * targets.size)
 
     t = time.perf_counter()
     start = {k: params[k] for k in free}
-    scale = jnp.maximum(loss(start, 1.0), 1e-30)
-    solver = optx.BFGS(rtol=r.get("rtol", 1e-8), atol=r.get("atol", 1e-12))
+    value = jax.jit(loss)
+    scale = jnp.maximum(value(start, 1.0), 1e-30)
+    rtol, atol = r.get("rtol", 1e-8), r.get("atol", 1e-12)
     transforms = {k: study.transforms.get(k) for k in free}
-    out = jr.fit.fit(loss, start, solver, args=scale, max_steps=r["steps"], transforms=transforms)
-    at_truth = float(loss({k: study.truth[k] for k in free}, 1.0))
-    info = {"steps": out.steps, "free": free, "settings": r.get("settings", "target_settings"),
+    if method == "bfgs":
+        out = jr.fit.fit(loss, start, optx.BFGS(rtol=rtol, atol=atol), args=scale,
+                         max_steps=r["steps"], transforms=transforms)
+    else:
+        out = jr.fit.fit_least_squares(residuals, start, optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+                                       args=scale, max_steps=r["steps"], transforms=transforms)
+    loss_end = float(value(out.params, 1.0))
+    at_truth = float(value({k: study.truth[k] for k in free}, 1.0))
+    info = {"method": method, "steps": out.steps, "free": free, "settings": r.get("settings", "target_settings"),
             "stopped": "converged" if out.result == optx.RESULTS.successful else "max_steps",
-            "loss_start": float(scale), "loss_end": float(out.loss * scale), "loss_truth": at_truth,
+            "loss_start": float(scale), "loss_end": loss_end, "loss_truth": at_truth,
             "seconds": round(time.perf_counter() - t, 2)}
-    print(f"refine: {info['steps']} BFGS steps, loss {info['loss_start']:.3e} → {info['loss_end']:.3e} "
+    print(f"refine: {info['steps']} {method} steps, loss {info['loss_start']:.3e} → {loss_end:.3e} "
           f"(at the truth {at_truth:.3e}), {info['seconds']} s", flush=True)
     return {**params, **out.params}, info
 
@@ -353,6 +379,9 @@ def _flat(params, order):
 
 
 # --------------------------------------------------------------------------- outputs
+
+
+_METHOD_NAMES = {"bfgs": "BFGS", "levenberg-marquardt": "Levenberg–Marquardt"}
 
 
 def markdown(res):
@@ -366,7 +395,7 @@ def markdown(res):
              "| metric | start | fit | target | met |", "|---|---|---|---|---|"]
     if res.get("refine"):
         r = res["refine"]
-        lines[3:3] = ["", f"Then {r['steps']} BFGS steps on the loss of `{r['settings']}` over "
+        lines[3:3] = ["", f"Then {r['steps']} {_METHOD_NAMES[r.get('method', 'bfgs')]} steps on the loss of `{r['settings']}` over "
                       f"{', '.join(r['free'])} (stopped: {r['stopped']}): loss {r['loss_start']:.3e} → "
                       f"{r['loss_end']:.3e} (at the true values: {r['loss_truth']:.3e}), {r['seconds']} s."]
     for k, v in res["metrics"].items():
