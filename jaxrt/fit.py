@@ -396,7 +396,8 @@ def _minimise(loss_fn, transforms, solver, raw, args, max_steps, throw):
 
 @eqx.filter_jit
 def _least_squares(residual_fn, transforms, solver, raw, args, max_steps, throw):
-    fn = lambda u, a: residual_fn(constrain(u, transforms), a)  # noqa: E731
+    dtype = jnp.result_type(*jax.tree.leaves(raw))  # lineax's Jacobian wants one dtype throughout
+    fn = lambda u, a: jax.tree.map(lambda r: r.astype(dtype), residual_fn(constrain(u, transforms), a))  # noqa: E731
     return optx.least_squares(fn, solver, raw, args=args, max_steps=max_steps, throw=throw)
 
 

@@ -107,6 +107,22 @@ def test_fit_a_ggx_spheres_roughness_and_f0(method):
     assert float(fit.relative_error(result.params, truth)) < 1e-3
 
 
+def test_least_squares_takes_residuals_of_another_float_type_than_the_parameters():
+    """A float32 image's residuals fitted in float64 parameters (a float32 render fitted
+    with x64 on): the Jacobian has one float type (the parameters'), and an exponential
+    decay's rate and amplitude are recovered to 1e-5."""
+    x = jnp.linspace(0.0, 2.0, 50)
+    truth = {"rate": jnp.asarray(1.3), "scale": jnp.asarray([2.0, 0.5])}
+    data = (truth["scale"][:, None] * jnp.exp(-truth["rate"] * x)).astype(jnp.float32)
+
+    def residuals(p, _):
+        return jnp.ravel((p["scale"][:, None] * jnp.exp(-p["rate"] * x)).astype(jnp.float32) - data)
+
+    start = {"rate": jnp.asarray(1.0, jnp.float64), "scale": jnp.asarray([1.5, 0.8], jnp.float64)}
+    result = fit.fit_least_squares(residuals, start, max_steps=50, transforms={"rate": fit.LOG})
+    assert float(fit.relative_error(result.params, truth)) < 1e-5
+
+
 @pytest.mark.slow
 def test_fit_a_glass_spheres_index_of_refraction_from_what_it_refracts():
     """η = 1.5 of a glass sphere in front of a textured wall (a sine-displaced plane lit

@@ -353,8 +353,7 @@ def refine(study, cfg, params, targets):
 
     t = time.perf_counter()
     start = {k: params[k] for k in free}
-    value = jax.jit(loss)
-    scale = jnp.maximum(value(start, 1.0), 1e-30)
+    scale = jnp.maximum(loss(start, 1.0), 1e-30)
     rtol, atol = r.get("rtol", 1e-8), r.get("atol", 1e-12)
     transforms = {k: study.transforms.get(k) for k in free}
     if method == "bfgs":
@@ -363,8 +362,8 @@ def refine(study, cfg, params, targets):
     else:
         out = jr.fit.fit_least_squares(residuals, start, optx.LevenbergMarquardt(rtol=rtol, atol=atol),
                                        args=scale, max_steps=r["steps"], transforms=transforms)
-    loss_end = float(value(out.params, 1.0))
-    at_truth = float(value({k: study.truth[k] for k in free}, 1.0))
+    loss_end = float(loss(out.params, 1.0))
+    at_truth = float(loss({k: study.truth[k] for k in free}, 1.0))
     info = {"method": method, "steps": out.steps, "free": free, "settings": r.get("settings", "target_settings"),
             "stopped": "converged" if out.result == optx.RESULTS.successful else "max_steps",
             "loss_start": float(scale), "loss_end": loss_end, "loss_truth": at_truth,
