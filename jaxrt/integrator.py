@@ -140,8 +140,11 @@ def _settle(scene, which, x, target, steps):
 def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True, origin=None):
     """Σ_lights f(wo, wi) · E · cos θi · V  +  ambient, at point p with normal n (facing wo).
 
-    The sum runs over the lights of each kind in turn (a `lax.scan` over their stacked
-    parameters), the material is evaluated once per kind (`bsdf.dispatch`).
+    Each kind of light answers for all its lights (`illuminate` in a `lax.scan` over
+    their stacked parameters: wi, distance and E of every light, no SDF); the sum then
+    runs over the lights of every kind in one `lax.scan`, whose step evaluates the
+    material (once per material kind, `bsdf.dispatch`) and traces the shadow ray: one
+    copy of both in the program whatever the number and the kinds of lights.
 
     f is the material's BRDF in the local frame of n; E the light's irradiance
     (I / r² for point lights); V the shadow-ray visibility. `colour` turns RGB values
@@ -159,7 +162,7 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
         return radiance
 
     def step(radiance, light):
-        wi, dist, irradiance = light.illuminate(p)
+        wi, dist, irradiance = light
         cos_i = dot(wi, n)
         wi_local = to_local(wi, n)
         f = dispatch(scene.materials, material, lambda m: m.eval(wo_local, wi_local),
@@ -169,11 +172,14 @@ def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=Tru
         visible = visibility(scene, origin, wi, dist, settings)
         return radiance + jnp.where(lit, colour(f) * colour(irradiance) * cos_i * visible, 0.0), None
 
-    # One `lax.scan` over the stacked lights of each kind (point, directional): one
-    # shadow march per kind in the program, whatever the number of lights. Through the
+    # (wi, distance, E) of every light, kind by kind, then one `lax.scan` over all of
+    # them: one shadow march and one material evaluation in the program. Through the
     # tape, so that the shadow marches' records leave the scan as its outputs.
-    for _, lights in group_by_kind(list(scene.lights)):
-        radiance, _ = tape.scan(step, radiance, stack(lights))
+    incident = [jax.lax.scan(lambda c, light: (c, light.illuminate(p)), None, stack(lights))[1]
+                for _, lights in group_by_kind(list(scene.lights))]
+    if incident:
+        lights = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs).astype(p.dtype), *incident)
+        radiance, _ = tape.scan(step, radiance, lights)
     return radiance
 
 
