@@ -233,10 +233,12 @@ def scale_by_leaf(scales):
 def schedule(learning_rate, steps=None, *, kind="cosine", warmup=0, end_factor=0.01):
     """A learning-rate schedule (an optax schedule, step ↦ rate): "constant", "cosine"
     (warm up linearly over `warmup` steps, then cosine decay to end_factor · rate at
-    `steps`) or "exponential" (decay to end_factor · rate at `steps`)."""
+    `steps`; a warm-up as long as the run or longer is cut to half of it) or
+    "exponential" (decay to end_factor · rate at `steps`)."""
     if kind == "constant" or steps is None:
         return optax.constant_schedule(learning_rate)
     if kind == "cosine":
+        warmup = int(steps) // 2 if warmup >= int(steps) else warmup
         return optax.warmup_cosine_decay_schedule(
             0.0 if warmup else learning_rate, learning_rate, max(warmup, 1) if warmup else 1,
             max(int(steps), 2), end_value=learning_rate * end_factor)

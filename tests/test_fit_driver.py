@@ -92,6 +92,14 @@ def test_per_group_learning_rates():
     assert float(res.params["b"]) == 0.5 and float(res.params["a"]) > 1.5
 
 
+def test_a_warm_up_longer_than_the_run_is_cut_to_half_of_it():
+    """schedule(steps=5, warmup=10): the rate rises over the first 2 steps to its peak,
+    then decays to end_factor × peak at step 5 (optax alone refuses this schedule)."""
+    rates = np.array([float(fit.schedule(0.1, 5, warmup=10, end_factor=0.01)(i)) for i in range(6)])
+    assert rates[0] == 0.0 and rates[2] == pytest.approx(0.1)
+    assert rates[5] == pytest.approx(0.001) and np.all(np.diff(rates[2:]) < 0)
+
+
 def test_reset_moments_restarts_adam_but_not_its_schedule():
     """After k steps and `reset_moments`, Adam's next step is a first step again (every
     leaf moves by its rate, m̂/√v̂ = ±1 whatever the gradients so far), at the rate the
