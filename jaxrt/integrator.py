@@ -263,11 +263,12 @@ def analytic_planes(surface):
     """The `sdf.Plane`s at the top of the scene's surface (the surface itself, or children
     of its top-level `Union`): those that `intersect_scene` also meets analytically."""
     from .sdf import Plane, Union
+    from .sdf.stack import StackedUnion
 
     if isinstance(surface, Plane):
         return [surface]
-    if isinstance(surface, Union):
-        return [c for c in surface.children_ if isinstance(c, Plane)]
+    if isinstance(surface, (Union, StackedUnion)):
+        return [c for c in surface.children() if isinstance(c, Plane)]
     return []
 
 

@@ -11,6 +11,7 @@ from .camera import pixel_samples
 from .integrator import trace_radiance
 from .kernels.fused import resolve_backend
 from .march import tape
+from .sdf.stack import prestack
 from .settings import RenderSettings
 
 
@@ -51,6 +52,7 @@ def render(scene, camera, settings=None):
 
 @eqx.filter_jit
 def _render(scene, camera, settings):
+    scene = _prestacked(scene)
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
     h, w, spp = camera.height, camera.width, settings.spp
 
@@ -222,6 +224,7 @@ def replay_image(scene, camera, settings=None):
 
 @eqx.filter_jit
 def _replay_image(scene, camera, settings):
+    scene = _prestacked(scene)
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
     kernel = _sample_kernel(settings)
     grid = (camera.height, camera.width * settings.spp)
@@ -246,6 +249,13 @@ def _fused(scene, camera, samples, settings, kernel, grid, offset):
     # pixel_samples gives pixel centres at spp 1: the Pallas kernel then computes them
     return map_samples(one, (scene, camera), samples, settings, reference, grid=grid,
                        centres=offset if settings.spp == 1 else None)
+
+
+def _prestacked(scene):
+    """The scene with the stacked groups of its unions stacked once, here, at the top of
+    the program (`sdf.stack.prestack`): the rest of the program sees one leaf per leaf
+    of a group's structure, not one per child."""
+    return eqx.tree_at(lambda s: s.surface, scene, prestack(scene.surface))
 
 
 def _dtype(settings):

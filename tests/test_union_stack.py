@@ -125,6 +125,43 @@ def test_stacked_union_gradients_reach_every_child():
     np.testing.assert_allclose(g.children_[4].child.radius, fd, rtol=1e-6)
 
 
+def test_prestacked_union_is_the_union():
+    """`stack.prestack` (what `render` does at the top of its program): the same values,
+    materials, Lipschitz bound and gradients (to every child's own leaves, through the
+    stack) as the union, also for a union nested in a transform; one leaf per leaf of a
+    group's structure instead of one per child; the plane stays a child of its own
+    (`integrator.analytic_planes` still meets it)."""
+    union = S.Union(*mixed_children())
+    scene = S.Translate(S.Union(union, S.Sphere(radius=0.1, material=0)), offset=(0.1, 0.0, 0.0))
+    p = points()
+
+    @eqx.filter_jit
+    def loss(s):
+        d, m = jax.vmap(stack.prestack(s).eval)(p)
+        return jnp.sum(jnp.sin(d)), m
+
+    (value, m), g = eqx.filter_value_and_grad(loss, has_aux=True)(scene)
+    (value_ref, m_ref), g_ref = eqx.filter_value_and_grad(
+        lambda s: (lambda d, m: (jnp.sum(jnp.sin(d)), m))(*jax.vmap(s.eval)(p)), has_aux=True)(scene)
+    np.testing.assert_allclose(value, value_ref, rtol=1e-15)
+    np.testing.assert_array_equal(m, m_ref)
+    for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(g_ref)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+    pre = stack.prestack(union)
+    assert isinstance(pre, stack.StackedUnion)
+    np.testing.assert_allclose(pre.lipschitz(), union.lipschitz(), rtol=1e-15)
+    assert pre.material_ids() == union.material_ids() == {0, 1, 2, 3}
+    assert [c for c in jr.integrator.analytic_planes(pre)] == [union.children_[-2]]
+    # leaves per kind, not per child: twice the children of each group, the same leaves
+    kids = mixed_children()
+    double = S.Union(*(kids[:-2] * 2 + kids[-2:]))
+    assert len(jax.tree_util.tree_leaves(double)) > 2 * len(jax.tree_util.tree_leaves(union)) - 5
+    assert len(jax.tree_util.tree_leaves(stack.prestack(double))) == \
+        len(jax.tree_util.tree_leaves(pre)) == 12
+    nested = stack.prestack(scene)
+    assert isinstance(nested.child.children_[0], stack.StackedUnion)
+
+
 def spheres(n):
     k = int(np.ceil(np.sqrt(n)))
     return S.Union(*[S.Translate(S.Sphere(radius=0.5, material=0), offset=((i % k) * 1.2, 0.5, (i // k) * 1.2))

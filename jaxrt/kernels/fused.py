@@ -193,10 +193,10 @@ def _tiles(one, dyn, samples, settings, grid):
     s = s.reshape((ty * tx,) + s.shape[2:])
 
     def run_tile(sb):
-        args = [lanes_of(leaf) for leaf in leaves]
+        args = [lanes_of(leaf, lazy=True) for leaf in leaves]
         args += [_lane(sb[..., 0]), _lane(sb[..., 1])]
         outs = eval_lanes(closed, args, tile, unroll=settings.kernel.unroll,
-                          materialize=settings.kernel.materialize, roll_scans=True)
+                          materialize=settings.kernel.materialize, roll_scans=True, keep_rows=True)
         return [stack_lanes(o, tile, sh.dtype) for o, sh in zip(outs, out_leaves)]
 
     if ty * tx == 1:

@@ -29,6 +29,7 @@ Material indices are data within a group: each primitive's static `material` bec
 an int32 leaf (`material_as_data`), so spheres of sixteen materials are one group of
 sixteen, not sixteen groups of one."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -125,15 +126,57 @@ def stacked_lipschitz(stacked):
     return jnp.max(jax.vmap(lambda c: jnp.asarray(c.lipschitz()))(stacked))
 
 
+def union_parts(children, threshold=None, keep=None):
+    """The parts of a union of `children`: (parts, ids, stacked), where a part is the
+    `stack_nodes` of a group of ≥ `threshold` children of one structure (None:
+    `STACK_THRESHOLD`; `stacked` True, `ids` the group's child indices) or one child (the
+    others, and those for which `keep(child)` is true; `ids` (i,)), in the order of
+    `group_by_structure`. None if no group is stacked."""
+    threshold = STACK_THRESHOLD if threshold is None else threshold
+    parts, ids, stacked = [], [], []
+    for ix, members in group_by_structure(children):
+        if len(ix) >= threshold and not (keep is not None and keep(children[ix[0]])):
+            parts.append(stack_nodes(members))
+            ids.append(ix)
+            stacked.append(True)
+        else:
+            parts += [children[i] for i in ix]
+            ids += [(i,) for i in ix]
+            stacked += [False] * len(ix)
+    if not any(stacked):
+        return None
+    return tuple(parts), tuple(ids), tuple(stacked)
+
+
+def parts_eval(parts, ids, stacked, p):
+    """`union_eval` of the `union_parts` (parts, ids, stacked): candidates of different
+    parts are combined by (distance, child index), so that ties go to the first child, as
+    in the loop."""
+    best = None
+    for part, ix, st in zip(parts, ids, stacked):
+        dc, mc, ic = stacked_eval(part, p, ix) if st else (*part.eval(p), jnp.int32(ix[0]))
+        if best is None:
+            best = (dc, mc, ic)
+            continue
+        d, m, i = best
+        take = (dc < d) | ((dc == d) & (ic < i))
+        best = (select(take, dc, d), select(take, mc, m), select(take, ic, i))
+    return best[0], best[1]
+
+
+def parts_lipschitz(parts, stacked):
+    """max_i L_i over the `union_parts`."""
+    values = [stacked_lipschitz(part) if st else jnp.asarray(part.lipschitz())
+              for part, st in zip(parts, stacked)]
+    return jnp.max(jnp.stack(values))
+
+
 def union_eval(children, p, threshold=None):
     """(min_i f_i(p), material of the first minimising child), as the loop
     `d = where(d_i < d, d_i, d)` over i = 1..n, with groups of ≥ `threshold` children
-    of one structure evaluated stacked (None: `STACK_THRESHOLD`).
-    Candidates of different groups are combined by (distance, child index), so that
-    ties go to the first child, as in the loop."""
-    threshold = STACK_THRESHOLD if threshold is None else threshold
-    groups = group_by_structure(children)
-    if all(len(ix) < threshold for ix, _ in groups):
+    of one structure evaluated stacked (None: `STACK_THRESHOLD`; `parts_eval`)."""
+    split = union_parts(children, threshold)
+    if split is None:
         d, m = children[0].eval(p)
         for child in children[1:]:
             dc, mc = child.eval(p)
@@ -141,29 +184,60 @@ def union_eval(children, p, threshold=None):
             m = select(take, mc, m)
             d = select(take, dc, d)
         return d, m
-    best = None
-    for ix, members in groups:
-        if len(ix) >= threshold:
-            candidates = [stacked_eval(stack_nodes(members), p, ix)]
-        else:
-            candidates = [(*c.eval(p), jnp.int32(i)) for i, c in zip(ix, members)]
-        for dc, mc, ic in candidates:
-            if best is None:
-                best = (dc, mc, ic)
-                continue
-            d, m, i = best
-            take = (dc < d) | ((dc == d) & (ic < i))
-            best = (select(take, dc, d), select(take, mc, m), select(take, ic, i))
-    return best[0], best[1]
+    return parts_eval(*split, p)
 
 
 def union_lipschitz(children, threshold=None):
     """max_i L_i, with the same grouping as `union_eval`."""
-    threshold = STACK_THRESHOLD if threshold is None else threshold
-    values = []
-    for _, members in group_by_structure(children):
-        if len(members) >= threshold:
-            values.append(stacked_lipschitz(stack_nodes(members)))
-        else:
-            values += [jnp.asarray(c.lipschitz()) for c in members]
-    return jnp.max(jnp.stack(values))
+    split = union_parts(children, threshold)
+    if split is None:
+        return jnp.max(jnp.stack([jnp.asarray(c.lipschitz()) for c in children]))
+    return parts_lipschitz(split[0], split[2])
+
+
+class StackedUnion(SDF):
+    """A `Union` whose groups are stacked once, ahead of the program (`prestack`): the
+    same function (`parts_eval`, the same operations as `Union.eval`), whose pytree holds
+    one [n, ...] leaf per leaf of a group's structure instead of n leaves. What a render
+    does per leaf of the scene (casts, `stop_gradient` at every march, the replay's
+    per-sample copies and their sums, the lane kernels' parameter unpacking) is then
+    done per group, whatever n. Gradients reach each child's own leaves through the stack.
+
+    `parts`: stacked groups and single children (`union_parts`); planes are never
+    stacked (`integrator.analytic_planes` meets them analytically)."""
+
+    parts: tuple
+    ids: tuple = eqx.field(static=True)
+    stacked: tuple = eqx.field(static=True)
+    materials: frozenset = eqx.field(static=True)
+
+    def eval(self, p):
+        return parts_eval(self.parts, self.ids, self.stacked, p)
+
+    def lipschitz(self):
+        return parts_lipschitz(self.parts, self.stacked)
+
+    def children(self):
+        """The parts that are single children."""
+        return tuple(c for c, st in zip(self.parts, self.stacked) if not st)
+
+    def material_ids(self):
+        return set(self.materials)
+
+
+def prestack(surface):
+    """`surface` with every `Union` that stacks a group (`union_parts`) replaced by its
+    `StackedUnion` (the same function). `render` calls it at the top of its program."""
+    from .combine import Union
+    from .primitives import Plane
+
+    def convert(node):
+        if type(node) is not Union:
+            return node
+        children = tuple(prestack(c) for c in node.children_)
+        split = union_parts(children, node.stack_threshold, keep=lambda c: isinstance(c, Plane))
+        if split is None:
+            return eqx.tree_at(lambda u: u.children_, node, children)
+        return StackedUnion(*split, frozenset(node.material_ids()))
+
+    return jax.tree_util.tree_map(convert, surface, is_leaf=lambda x: type(x) is Union)

@@ -13,15 +13,17 @@ from jax import lax
 
 from .elementwise import _apply, _fold, _select
 from .jax_internals import ClosedJaxpr, Jaxpr, _closed, _scan_counts, dce_jaxpr, while_parts
-from .values import Unsupported, _broadcast, _convert, _is_const, _lane_shape, _obj
+from .values import (Row, Unsupported, _broadcast, _convert, _is_const, _lane_shape, _obj,
+                     resolve, resolve_lane)
 
 def _call(eqn, ins, ctx):
     closed = _closed(eqn)
     if closed is None:
         raise Unsupported(f"{eqn.primitive.name}: no inner jaxpr found")
-    outs = ctx.eval_closed(closed, ins)
+    # a call runs in its caller's trace scope: its results may stay `Row`s
+    outs = ctx.eval_closed(closed, ins, keep_rows=True)
     if ctx.materialize and ctx.loop_depth == 0:
-        outs = _barrier(outs)
+        outs = _barrier([resolve(o, ctx) for o in outs])
     return outs
 
 
@@ -62,7 +64,8 @@ def _barrier(objs):
 
 def _while(eqn, ins, ctx):
     cn, bn, cond_j, body_j = while_parts(eqn.params)
-    cconsts, bconsts, init = ins[:cn], ins[cn:cn + bn], ins[cn + bn:]
+    cconsts, bconsts = ins[:cn], ins[cn:cn + bn]
+    init = [resolve(x, ctx) for x in ins[cn + bn:]]
     used = ctx.used_outputs or [True] * len(init)
     cond_j, body_j, cconsts, bconsts, keep = _prune_loop(cond_j, body_j, cconsts, bconsts, used)
     full_init = init
@@ -156,18 +159,20 @@ def _scan(eqn, ins, ctx):
     """`lax.scan`, unrolled: the body once per iteration on that iteration's slices of
     the scanned inputs (static slices of object arrays: free). A lane program is
     scalarised anyway, so a scan of length n is n copies of its body (as a Python loop
-    would be). With ctx.roll_scans (the "fused" XLA backend) a scan without stacked
-    outputs stays a loop (`_scan_rolled`): one copy of its body, whatever n (`Union`'s
-    stacked children, a material taken by index, the lights of one kind)."""
+    would be). With ctx.roll_scans (the "fused" XLA backend) a scan stays a loop
+    (`_scan_rolled`): one copy of its body, whatever n (`Union`'s stacked children, a
+    material taken by index, the lights), also for n = 1, so that the program of a
+    scene does not change with how many things of a kind it has."""
     p = eqn.params
     nc, nk = _scan_counts(p)
     length = p["length"]
     closed = p["jaxpr"]
     if isinstance(closed, Jaxpr):
         closed = ClosedJaxpr(closed, ())
-    consts, carry, xs = ins[:nc], list(ins[nc:nc + nk]), ins[nc + nk:]
-    if ctx.roll_scans and length > 1:
+    consts, carry, xs = ins[:nc], [resolve(c, ctx) for c in ins[nc:nc + nk]], ins[nc + nk:]
+    if ctx.roll_scans and length > 0:
         return _scan_rolled(eqn, closed, consts, carry, xs, length, p["reverse"], ctx)
+    xs = [resolve(x, ctx) for x in xs]
     order = range(length - 1, -1, -1) if p["reverse"] else range(length)
     ys = [None] * length
     for i in order:
@@ -183,10 +188,11 @@ def _scan(eqn, ins, ctx):
 
 
 def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
-    """A scan without stacked outputs as one `lax.scan` over lanes: each carried
-    element a [block] array (bools as int32 unless ctx.bool_carries), each scanned
-    element its `length` lanes stacked ([length] when they are shared by all rays,
-    else [length, *block]); the body is interpreted once."""
+    """A scan as one `lax.scan` over lanes: each carried element a [block] array (bools
+    as int32 unless ctx.bool_carries), each scanned element its `length` lanes stacked
+    ([length] when they are shared by all rays, else [length, *block]), each element of
+    a stacked output a [length, *block] array whose rows are `Row` lanes; the body is
+    interpreted once."""
     block = ctx.block
     nk = len(carry)
     avals = [v.aval for v in eqn.outvars[:nk]]
@@ -221,23 +227,27 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
         elem_shape = x.shape[1:]
         for idx in np.ndindex(elem_shape):
             lanes = [x[(i,) + idx] for i in range(length)]
-            source = [ctx.slice_of.get(id(v)) for v in lanes]
-            if all(_is_const(v) for v in lanes):
-                xs_flat.append(np.asarray([np.asarray(v, dt) for v in lanes], dt))
-            elif all(src is not None and src[0] is source[0][0] and src[1] == i
-                     for i, src in enumerate(source)) and source[0][0].dtype == dt:
-                # the stacked outputs of another rolled scan (a gradient's residuals)
-                xs_flat.append(source[0][0])
+            arr = lanes[0].arr if isinstance(lanes[0], Row) else None
+            if arr is not None and all(isinstance(v, Row) and v.arr is arr for v in lanes):
+                # rows of one array: the stacked outputs of another rolled scan (a
+                # gradient's residuals), or a stacked leaf of the scene
+                rows = [v.i for v in lanes]
+                whole = rows == list(range(arr.shape[0]))
+                xs_flat.append((arr if whole else arr[np.asarray(rows)]).astype(dt))
             elif all(id(v) in ctx.param_pos for v in lanes) and \
                     len({ctx.param_pos[id(v)][0] for v in lanes}) == 1:
                 # parameters of the program: one gather from their table (built once,
                 # outside every loop), not a stack of n lanes at every site
                 table = ctx.param_table[ctx.param_pos[id(lanes[0])][0]]
                 xs_flat.append(table[np.asarray([ctx.param_pos[id(v)][1] for v in lanes])].astype(dt))
-            elif all(_lane_shape(v) == () for v in lanes):
-                xs_flat.append(jnp.stack([jnp.asarray(v, dt) for v in lanes]))
+            elif all(_is_const(v) for v in lanes):
+                xs_flat.append(np.asarray([np.asarray(v, dt) for v in lanes], dt))
             else:
-                xs_flat.append(jnp.stack([_broadcast(v, block, dt, ctx) for v in lanes]))
+                lanes = [resolve_lane(v, ctx) for v in lanes]
+                if all(_lane_shape(v) == () for v in lanes):
+                    xs_flat.append(jnp.stack([jnp.asarray(v, dt) for v in lanes]))
+                else:
+                    xs_flat.append(jnp.stack([_broadcast(v, block, dt, ctx) for v in lanes]))
         xs_meta.append((elem_shape, dt))
 
     def unpack_xs(flat):
@@ -265,8 +275,8 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
         flat, ys_flat = lax.scan(body, pack(carry), xs_flat, length=length, reverse=reverse)
     finally:
         ctx.loop_depth -= 1
-    # stacked outputs: lane i of an element is ys[i] (remembered, so that a rolled scan
-    # that scans over them takes the array itself)
+    # stacked outputs: lane i of an element is row i of its array, sliced where read (a
+    # rolled scan that scans over them takes the array itself)
     stacked, k = [], 0
     for aval in y_avals:
         obj = _obj(aval.shape)
@@ -274,10 +284,9 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
             arr = ys_flat[k]
             k += 1
             for i in range(length):
-                lane = arr[i]
-                ctx.slice_of[id(lane)] = (arr, i, lane)
-                obj[(i,) + idx] = lane
+                obj[(i,) + idx] = Row(arr, i)
         stacked.append(obj)
+        ctx.rows = True
     return unpack(flat) + stacked
 
 

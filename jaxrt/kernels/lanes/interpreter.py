@@ -12,11 +12,12 @@ from .control import _call, _cond, _scan, _while
 from .elementwise import _elementwise, _round
 from .gpu import _SUBSTITUTES, _fma, _fma_plan, _substitute, rewrite
 from .indexing import _dynamic_slice, _dynamic_update_slice, _gather, _scatter
-from .jax_internals import CALLS, ELEMENTWISE, ClosedJaxpr, Jaxpr, is_dropvar, is_literal
+from .jax_internals import CALLS, ELEMENTWISE, IDENTITY, ClosedJaxpr, Jaxpr, is_dropvar, is_literal
 from .structural import (_arg_reduce, _broadcast_in_dim, _concatenate, _dot_general,
                          _expand_dims, _iota, _optimization_barrier, _pad, _reduce, _reshape,
                          _rev, _slice, _split, _squeeze, _stack, _transpose, _unstack)
-from .values import _Ctx, _any_lane_default, _is_const, _lane_shape, _shape, lanes_of, Unsupported
+from .values import (Row, _Ctx, _any_lane_default, _is_const, _lane_shape, _shape, lanes_of,
+                     resolve, row_array, Unsupported)
 
 _RULES = {
     "broadcast_in_dim": _broadcast_in_dim,
@@ -57,9 +58,20 @@ _RULES = {
 }
 
 
-def _eval_closed(closed, args, ctx):
+# Rules that take `Row` lanes as they are: scans (a rolled one scans the rows' array),
+# loops and calls (the equations of their bodies resolve what they read, a loop's in the
+# body's scope), rules that only move lanes, and identities.
+_KEEPS_ROWS = frozenset({"scan", "while", *CALLS, *IDENTITY, "broadcast_in_dim", "reshape", "squeeze",
+                         "expand_dims", "transpose", "rev", "slice", "concatenate", "stack",
+                         "unstack", "split"})
+
+
+def _eval_closed(closed, args, ctx, keep_rows=False):
+    """The outputs of `closed` on `args`; with `keep_rows` they may hold `Row` lanes
+    (a call's results, read in the caller's scope), else they are sliced."""
     consts = [lanes_of(c) for c in closed.consts]
-    return _eval_jaxpr(closed.jaxpr, consts, args, ctx)
+    outs = _eval_jaxpr(closed.jaxpr, consts, args, ctx)
+    return outs if keep_rows else [resolve(o, ctx) for o in outs]
 
 
 def _eval_jaxpr(jaxpr, consts, args, ctx):
@@ -96,6 +108,16 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
         ctx.used_outputs = used
         ins = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
+        if ctx.rows and name in ELEMENTWISE and name not in IDENTITY and len(ins) == 1 \
+                and row_array(ins[0]) is not None:
+            # a unary operation on all the rows of an array (a record's bool → int32):
+            # one operation on the array, whose rows are the result
+            out = eqn.primitive.bind(row_array(ins[0]), **eqn.params)
+            write(eqn.outvars[0], np.asarray([Row(out, i) for i in range(out.shape[0])],
+                                             dtype=object).reshape(ins[0].shape))
+            continue
+        if ctx.rows and name not in _KEEPS_ROWS:
+            ins = [resolve(x, ctx) for x in ins]
         if eqn.outvars[0] in products:  # a product that its one consumer fuses
             write(eqn.outvars[0], ins)
             continue
@@ -122,6 +144,35 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
     return [read(v) for v in jaxpr.outvars]
 
 
+def _param_table(args, param_pos):
+    """{dtype: [n] array} of the program's 0-d parameter lanes (the arrays of `Row`
+    lanes whole, the other lanes stacked), noting each lane's (dtype, position) in
+    `param_pos`."""
+    parts = collections.defaultdict(list)  # dtype -> [array or [lanes]]
+    sizes = collections.defaultdict(int)
+    starts = {}  # id of a Row's array -> its position in the table
+    loose = collections.defaultdict(list)
+    for a in args:
+        for x in a.reshape(-1):
+            if id(x) in param_pos:
+                continue
+            if isinstance(x, Row):
+                dt = np.dtype(x.arr.dtype)
+                if id(x.arr) not in starts:
+                    starts[id(x.arr)] = sizes[dt]
+                    parts[dt].append(x.arr)
+                    sizes[dt] += x.arr.shape[0]
+                param_pos[id(x)] = (dt, starts[id(x.arr)] + x.i)
+            elif not _is_const(x) and _lane_shape(x) == ():
+                loose[np.dtype(x.dtype)].append(x)
+    for dt, xs in loose.items():
+        for x in xs:
+            param_pos[id(x)] = (dt, sizes[dt])
+            sizes[dt] += 1
+        parts[dt].append(jnp.stack(xs))
+    return {dt: ps[0] if len(ps) == 1 else jnp.concatenate(ps) for dt, ps in parts.items()}
+
+
 def program_size(jaxpr):
     """Lane operations of a one-ray program: its equations (those of loop bodies and
     calls once), each counted once per element of its result, as `eval_lanes`
@@ -141,7 +192,7 @@ def program_size(jaxpr):
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
                fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None,
-               bool_carries=False, roll_scans=False):
+               bool_carries=False, roll_scans=False, keep_rows=False):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -165,8 +216,9 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
         approximate functions (`_fast_math`).
       uniforms: a `Uniforms`, recording or replaying the values shared by all rays.
       bool_carries: loops carry boolean lanes as booleans (else as int32).
-      roll_scans: scans without stacked outputs stay loops (`_scan_rolled`: one copy
-        of the body), else they are unrolled.
+      roll_scans: scans stay loops (`_scan_rolled`: one copy of the body), else they
+        are unrolled.
+      keep_rows: the outputs may hold `Row` lanes (for `stack_lanes`).
 
     Returns: one object array of lanes per output of the program.
     """
@@ -179,18 +231,14 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     ctx.roll_scans = roll_scans
     ctx.rewrite = rewrite if (fast_math or ptx) else None
     ctx.eval_closed = functools.partial(_eval_closed, ctx=ctx)
+    ctx.rows = any(isinstance(x, Row) for a in args for x in a.reshape(-1))
     if roll_scans:  # a table of the 0-d parameter lanes, for rolled scans to gather from
-        by_dtype = collections.defaultdict(list)
-        for a in args:
-            for x in a.reshape(-1):
-                if not _is_const(x) and _lane_shape(x) == () and id(x) not in ctx.param_pos:
-                    dt = np.dtype(x.dtype)
-                    ctx.param_pos[id(x)] = (dt, len(by_dtype[dt]))
-                    by_dtype[dt].append(x)
-        ctx.param_table = {dt: jnp.stack(xs) for dt, xs in by_dtype.items()}
+        ctx.param_table = _param_table(args, ctx.param_pos)
     for a in args:  # a traced per-ray input: constants become lanes through it
         for x in a.reshape(-1):
+            if isinstance(x, Row):
+                continue
             if ctx.anchor is None and not _is_const(x) and tuple(jnp.shape(x)) == ctx.block \
                     and jnp.issubdtype(x.dtype, jnp.floating):
                 ctx.anchor = x
-    return _eval_closed(closed, list(args), ctx)
+    return _eval_closed(closed, list(args), ctx, keep_rows=keep_rows)

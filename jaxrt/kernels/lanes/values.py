@@ -5,6 +5,9 @@ is a numpy object array of shape S whose elements are lanes, each
 - a 0-d array: the same for every ray (a scene parameter, or a value computed from them);
 - a numpy scalar: a compile-time constant (`_is_const`).
 
+A lane may also be a `Row` (row i of a [n, *block] array that a rolled scan stacked,
+not yet sliced out; `resolve` slices it where a rule reads it).
+
 `lanes_of` and `stack_lanes` convert between arrays and object arrays of lanes;
 `_broadcast` and `_const_lane` make full lanes; `_Ctx` is the evaluation context that
 the rules of the other modules receive."""
@@ -19,6 +22,53 @@ class Unsupported(NotImplementedError):
     """The one-ray program uses a primitive (or a form of one) that lanes cannot run."""
 
 
+class Row:
+    """Lane `arr[i]` of the stacked outputs of a rolled scan (`control._scan_rolled`),
+    sliced only where a rule reads it (`resolve`): a scan that scans over all the rows
+    of `arr` takes `arr` itself, so a gradient's residuals, stacked by one scan and read
+    by its transpose, cost no slice per child and iteration."""
+
+    __slots__ = ("arr", "i")
+
+    def __init__(self, arr, i):
+        self.arr, self.i = arr, i
+
+
+def resolve_lane(x, ctx):
+    """`x`, or the lane `x.arr[x.i]` if `x` is a `Row`: sliced once per trace scope (a
+    lane sliced inside a loop body must not be reused outside it)."""
+    if not isinstance(x, Row):
+        return x
+    cache = ctx.scopes[-1]
+    key = ("row", id(x))
+    if key not in cache or cache[key][0] is not x:  # (the id of a freed row may recur)
+        cache[key] = (x, x.arr[x.i])
+    return cache[key][1]
+
+
+def row_array(obj):
+    """The [n, ...] array whose rows, in order, are the elements of the object array
+    `obj` (of n elements), or None."""
+    flat = obj.reshape(-1)
+    first = flat[0] if flat.size else None
+    if not isinstance(first, Row) or first.arr.shape[0] != flat.size:
+        return None
+    if all(isinstance(e, Row) and e.arr is first.arr and e.i == i for i, e in enumerate(flat)):
+        return first.arr
+    return None
+
+
+def resolve(obj, ctx):
+    """The object array `obj` with its `Row`s sliced (`resolve_lane`); `obj` itself if
+    it holds none (or if no rolled scan made any)."""
+    if not ctx.rows or obj.dtype != object or not any(isinstance(x, Row) for x in obj.flat):
+        return obj
+    out = _obj(obj.shape)
+    for idx in np.ndindex(obj.shape):
+        out[idx] = resolve_lane(obj[idx], ctx)
+    return out
+
+
 def _is_const(x):
     return isinstance(x, np.generic)
 
@@ -31,11 +81,13 @@ def _obj(shape):
     return np.empty(shape, dtype=object)
 
 
-def lanes_of(x):
+def lanes_of(x, lazy=False):
     """A concrete or traced array of shape S as an object array of 0-d lanes.
 
     Concrete (numpy, or non-traced JAX) arrays become numpy scalars (constants); traced
-    arrays are indexed element by element (uniform lanes)."""
+    arrays are indexed element by element (uniform lanes), or with `lazy` held as `Row`s
+    of the flattened array, sliced only where read (a scene's stacked children are
+    then gathered from the parameter table by rolled scans, never sliced one by one)."""
     if isinstance(x, (np.ndarray, np.generic, int, float, bool)) or (
         isinstance(x, jax_array) and not isinstance(x, Tracer)
     ):
@@ -53,15 +105,21 @@ def lanes_of(x):
     else:
         flat = jnp.reshape(x, (-1,))
         for k, idx in enumerate(np.ndindex(shape)):
-            out[idx] = flat[k]
+            out[idx] = Row(flat, k) if lazy else flat[k]
     return out
 
 
 def stack_lanes(obj, block, dtype):
-    """An object array of lanes (shape S) as one array [*block, *S]."""
+    """An object array of lanes (shape S) as one array [*block, *S]. Its lanes may be
+    `Row`s (`eval_lanes(keep_rows=True)`): all the rows of one [n, *block] array, in
+    order, are that array, moved; other rows are sliced."""
     block = _shape(block)
     shape = obj.shape
-    elems = [_broadcast(e, block, dtype) for e in obj.reshape(-1)]
+    arr = row_array(obj)
+    if arr is not None and arr.shape[1:] == block:
+        return jnp.moveaxis(arr.astype(dtype), 0, -1).reshape(block + shape)
+    elems = [_broadcast(e.arr[e.i] if isinstance(e, Row) else e, block, dtype)
+             for e in obj.reshape(-1)]
     if not elems:
         return jnp.zeros(block + shape, dtype)
     return jnp.stack(elems, axis=-1).reshape(block + shape)
@@ -130,7 +188,7 @@ class _Ctx:
         self.materialize = materialize
         self.loop_depth = 0
         self.roll_scans = False
-        self.slice_of = {}  # id of a lane -> (array, i, lane): lane is array[i]
+        self.rows = False  # whether a rolled scan has made `Row` lanes
         self.param_pos = {}  # id of a 0-d parameter lane -> (dtype, position in its table)
         self.param_table = {}  # dtype -> [n] array of the program's 0-d parameter lanes
         self.rewrite = None  # (name, lanes, dtype, ctx) -> lane or None: GPU forms (`gpu.rewrite`)
