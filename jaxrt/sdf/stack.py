@@ -27,7 +27,12 @@ unrolls it (`jaxrt.kernels.lanes`), so its programs still grow linearly with n.
 
 Material indices are data within a group: each primitive's static `material` becomes
 an int32 leaf (`material_as_data`), so spheres of sixteen materials are one group of
-sixteen, not sixteen groups of one."""
+sixteen, not sixteen groups of one.
+
+`render` stacks the groups once, at the top of its program (`prestack`: a
+`StackedUnion`), so that what it does per leaf of the scene outside the SDF (casts,
+`stop_gradient` at every march, the replay's per-sample copies, the lane kernels'
+parameters) is done per group, not per child."""
 
 import equinox as eqx
 import jax

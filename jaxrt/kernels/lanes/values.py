@@ -5,8 +5,8 @@ is a numpy object array of shape S whose elements are lanes, each
 - a 0-d array: the same for every ray (a scene parameter, or a value computed from them);
 - a numpy scalar: a compile-time constant (`_is_const`).
 
-A lane may also be a `Row` (row i of a [n, *block] array that a rolled scan stacked,
-not yet sliced out; `resolve` slices it where a rule reads it).
+A lane may also be a `Row`: row i of an array (the stacked outputs of a rolled scan, or
+a leaf of the scene), not yet sliced out; `resolve` slices it where a rule reads it.
 
 `lanes_of` and `stack_lanes` convert between arrays and object arrays of lanes;
 `_broadcast` and `_const_lane` make full lanes; `_Ctx` is the evaluation context that
@@ -23,10 +23,12 @@ class Unsupported(NotImplementedError):
 
 
 class Row:
-    """Lane `arr[i]` of the stacked outputs of a rolled scan (`control._scan_rolled`),
-    sliced only where a rule reads it (`resolve`): a scan that scans over all the rows
-    of `arr` takes `arr` itself, so a gradient's residuals, stacked by one scan and read
-    by its transpose, cost no slice per child and iteration."""
+    """Lane `arr[i]`, sliced only where a rule reads it (`resolve`): an element of the
+    stacked outputs of a rolled scan (`control._scan_rolled`, arr [n, *block]) or of a
+    leaf of the scene (`lanes_of(lazy=True)`, arr the flattened leaf). A rolled scan
+    over rows of one array takes the array (a gradient's residuals, stacked by one scan
+    and read by its transpose; a union's stacked children), so neither costs a slice
+    per element at every site."""
 
     __slots__ = ("arr", "i")
 
