@@ -22,7 +22,9 @@ block that runs while any lane is active; inactive lanes keep their state (the
 semantics of `vmap` of a while loop: each ray stops where it would alone, and the block
 stops when its last ray does). `cond` with a per-ray index evaluates every branch and
 selects lane-wise. A `scan` is unrolled, or with `roll_scans` (the "fused"
-backend) kept as one loop over lanes (`control._scan_rolled`). Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table)
+backend) kept as one loop over lanes (`control._scan_rolled`), whose stacked outputs
+stay arrays whose rows are sliced only where read (`values.Row`; the scene's leaves
+too, on "fused"). Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table)
 becomes a chain of selects over the possible indices.
 
 The result is the same function as the one-ray program (same primitives, same order of
