@@ -160,6 +160,16 @@ def test_prestacked_union_is_the_union():
         len(jax.tree_util.tree_leaves(pre)) == 12
     nested = stack.prestack(scene)
     assert isinstance(nested.child.children_[0], stack.StackedUnion)
+    # a union of stacked unions that is stacked in turn: 8 grids of 8 spheres
+    grid = lambda k: S.Translate(S.Union(*[S.Translate(S.Sphere(radius=0.2, material=j % 2), offset=(0.5 * j, 0.0, 0.0))  # noqa: E731
+                                           for j in range(8)]), offset=(0.0, 0.0, 0.6 * k - 2.0))
+    grids = S.Union(*[grid(k) for k in range(8)])
+    pre = stack.prestack(grids)
+    assert pre.stacked == (True,)
+    d, m = jax.vmap(pre.eval)(p)
+    d_ref, m_ref = jax.vmap(grids.eval)(p)
+    np.testing.assert_allclose(d, d_ref, rtol=1e-15)
+    np.testing.assert_array_equal(m, m_ref)
 
 
 def spheres(n):

@@ -77,13 +77,14 @@ def _untag(prim):
 
 def material_as_data(child):
     """`child` with every primitive's static material index made a leaf (`_Tagged`):
-    the same function, whose structure no longer depends on the materials."""
+    the same function, whose structure no longer depends on the materials. Primitives
+    already tagged (inside a `StackedUnion`) stay as they are."""
     def tag(x):
         if isinstance(x, Primitive):
             return _Tagged(_untag(x), jnp.asarray(x.material, jnp.int32))
         return x
 
-    return jax.tree_util.tree_map(tag, child, is_leaf=lambda x: isinstance(x, Primitive))
+    return jax.tree_util.tree_map(tag, child, is_leaf=lambda x: isinstance(x, (Primitive, _Tagged)))
 
 
 def group_by_structure(children):
