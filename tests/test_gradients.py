@@ -655,11 +655,6 @@ def _replay_scene(dispersive=False):
     return scene, camera, settings
 
 
-#: Replay-against-reference checks written at the end of session 4 and not yet seen to
-#: pass (the 2-core machine was saturated): expected to, marked so until they have.
-UNVERIFIED = pytest.mark.xfail(reason="not yet seen to pass: written at the end of session 4 (issue 11 note)", strict=False)
-
-
 REPLAY_VARIANTS = {
     "whitted": {},
     "silhouette": dict(silhouette=True, max_depth=0),
@@ -737,9 +732,8 @@ def test_replay_gradients_equal_the_reference_path_on_every_march():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("problem", ["whitted_problem"] + [
-    pytest.param(p, marks=UNVERIFIED) for p in
-    ("placement_problem", "specular_materials_problem", "dispersion_problem", "deformation_problem")])
+@pytest.mark.parametrize("problem", ["whitted_problem", "placement_problem", "specular_materials_problem",
+                                     "dispersion_problem", "deformation_problem"])
 def test_replay_gradients_equal_the_reference_path(problem, request):
     """The existing gradient problems (shapes, placements, materials, lights, camera;
     mirrors, glass, η, absorption; Whitted and conductor parameters; dispersion in
@@ -747,7 +741,6 @@ def test_replay_gradients_equal_the_reference_path(problem, request):
     request.getfixturevalue(problem).check_replay()
 
 
-@UNVERIFIED
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["sine", "grid"])
 def test_replay_gradients_equal_the_reference_path_through_height_fields(kind):
