@@ -207,6 +207,43 @@ def test_control_flow_rule_matches_jax(name, prim, fn, options):
             np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-14)
 
 
+def _slot_buffer(p, a, b):
+    """The ray tree of `recursion = "scan"` in small: a scan over 12 slots reads slot i
+    of a buffer and writes two children at 2i + 1 (indices shared by all rays: the
+    scan's counter), the leaves into scratch slots at the end."""
+    slots = 12
+    buf = jnp.zeros((slots + 2, 2), a.dtype).at[0].set(jnp.stack([a, b]))
+
+    def step(buf, i):
+        x = buf[i]
+        kids = jnp.stack([x * p[0] + a, x[::-1] - b * p[1]])
+        start = jnp.where(i < 5, 2 * i + 1, slots)
+        return lax.dynamic_update_slice_in_dim(buf, kids, start, 0), x[0] * x[1]
+
+    return lax.scan(step, buf, jnp.arange(slots))
+
+
+@pytest.mark.parametrize("roll_scans", [False, True])
+def test_shared_index_into_a_slot_buffer(roll_scans):
+    """A dynamic slice and update at an index shared by all rays: enumerated as selects
+    (unrolled scans), or on "fused" (rolled scans, more than `ENUMERATE_SHARED`
+    candidates) one slice of the stacked lanes: few selects in the lane program."""
+    from jaxrt.kernels.lanes import indexing
+
+    params, a, b = inputs()
+    closed, got, want = lanes_and_vmap(_slot_buffer, params, a, b, roll_scans=roll_scans)
+    assert {"dynamic_slice", "dynamic_update_slice"} <= primitives(closed.jaxpr)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-14)
+    def lanes(p, a, b):
+        outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N, roll_scans=roll_scans)
+        return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
+
+    names = primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
+    assert ("dynamic_update_slice" in names) == roll_scans, names
+    assert 12 > indexing.ENUMERATE_SHARED
+
+
 def test_while_rule_steps_each_ray_as_often_as_alone():
     """The loop over the block runs until its last ray stops; every ray's trip count is
     the one it has alone (inactive lanes keep their state)."""
