@@ -9,26 +9,43 @@ served 1 407 of 5 260 compiles, small ones, and saved 4 % of the suite's time.)
 
 The suite is mostly compiles (about half of its time goes to XLA, a third to tracing and
 lowering), so every program compiles with the flags of `jaxrt.xla`'s "fast-compile"
-preset (`TEST_XLA_FLAGS`, added to `$XLA_FLAGS`; `JAXRT_TEST_XLA=default` leaves XLA's
-defaults): the README's `pytest` took 739 s with XLA's defaults and 484 s with them, on
-2 quiet cores. The flags change no float semantics; the last bits of a result may differ
+preset that this XLA knows (`TEST_XLA_FLAGS`, added to `$XLA_FLAGS`;
+`JAXRT_TEST_XLA=default` leaves XLA's defaults): the README's `pytest` took 739 s with
+XLA's defaults and 484 s with them, on 2 quiet cores (jax 0.10.2). The flags change no float semantics; the last bits of a result may differ
 from XLA's defaults, as they may between any two programs (tests compare to rounding).
 `tests/test_xla_options.py` still compiles XLA's defaults where it compares the presets:
 options given to a compile override these.
 """
 
 import os
+import subprocess
+import sys
 
 os.environ.setdefault("JAXRT_NO_CACHE", "1")
 
 #: `jaxrt.xla.XLA_PRESETS["fast-compile"]["cpu"]` as XLA_FLAGS (read when XLA starts, so
-#: set before the first computation; flags XLA already has in `$XLA_FLAGS` are kept).
+#: set before the first computation; flags already in `$XLA_FLAGS` are kept).
 TEST_XLA_FLAGS = {"xla_cpu_use_fusion_emitters": "false", "xla_backend_optimization_level": "1"}
+
+
+def _accepted(flags):
+    """Whether this XLA accepts `flags` in $XLA_FLAGS: it aborts the process on a flag it
+    does not know (jax 0.11's has no `xla_cpu_use_fusion_emitters`), so a subprocess
+    tries them. Once per test session: xdist's workers inherit the flags found."""
+    env = {**os.environ, "XLA_FLAGS": " ".join(flags), "JAX_PLATFORMS": "cpu"}
+    probe = [sys.executable, "-c", "import jax.numpy as jnp; jnp.ones(1).block_until_ready()"]
+    try:
+        return subprocess.run(probe, env=env, capture_output=True, timeout=300).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
 
 if os.environ.get("JAXRT_TEST_XLA", "fast-compile") != "default":
     _flags = os.environ.get("XLA_FLAGS", "")
-    _flags += "".join(f" --{k}={v}" for k, v in TEST_XLA_FLAGS.items() if f"--{k}=" not in _flags)
-    os.environ["XLA_FLAGS"] = _flags.strip()
+    _wanted = [f"--{k}={v}" for k, v in TEST_XLA_FLAGS.items() if f"--{k}=" not in _flags]
+    if _wanted and not _accepted(_wanted):
+        _wanted = [f for f in _wanted if _accepted([f])]
+    os.environ["XLA_FLAGS"] = " ".join([_flags, *_wanted]).strip()
 
 import jax  # noqa: E402
 
