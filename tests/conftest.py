@@ -11,8 +11,9 @@ The suite is mostly compiles (about half of its time goes to XLA, a third to tra
 lowering), so every program compiles with the flags of `jaxrt.xla`'s "fast-compile"
 preset that this XLA knows (`TEST_XLA_FLAGS`, added to `$XLA_FLAGS`;
 `JAXRT_TEST_XLA=default` leaves XLA's defaults): the README's `pytest` took 739 s with
-XLA's defaults and 484 s with them, on 2 quiet cores (jax 0.10.2). The flags change no float semantics; the last bits of a result may differ
-from XLA's defaults, as they may between any two programs (tests compare to rounding).
+XLA's defaults and 484 s with them, on 2 quiet cores (jax 0.10.2). The flags change no
+float semantics; the last bits of a result may differ from XLA's defaults, as they may
+between any two programs (tests compare to rounding).
 `tests/test_xla_options.py` still compiles XLA's defaults where it compares the presets:
 options given to a compile override these.
 """
