@@ -227,21 +227,22 @@ def _slot_buffer(p, a, b):
 def test_shared_index_into_a_slot_buffer(roll_scans):
     """A dynamic slice and update at an index shared by all rays: enumerated as selects
     (unrolled scans), or on "fused" (rolled scans, more than `ENUMERATE_SHARED`
-    candidates) one slice of the stacked lanes: few selects in the lane program."""
+    candidates) one `dynamic_update_slice` of the stacked lanes in the lane program."""
     from jaxrt.kernels.lanes import indexing
 
+    assert 14 - 2 + 1 > indexing.ENUMERATE_SHARED  # the candidates of a 2-row write
     params, a, b = inputs()
     closed, got, want = lanes_and_vmap(_slot_buffer, params, a, b, roll_scans=roll_scans)
     assert {"dynamic_slice", "dynamic_update_slice"} <= primitives(closed.jaxpr)
     for g, w in zip(got, want, strict=True):
         np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-14)
+
     def lanes(p, a, b):
         outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N, roll_scans=roll_scans)
         return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
 
     names = primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
     assert ("dynamic_update_slice" in names) == roll_scans, names
-    assert 12 > indexing.ENUMERATE_SHARED
 
 
 def test_while_rule_steps_each_ray_as_often_as_alone():

@@ -174,7 +174,8 @@ def test_smooth_combinations_with_k_zero_are_sharp():
     a, b = two_balls()
     p = points(10, n=500)
     fa, fb = batch(a)(p), batch(b)(p)
-    np.testing.assert_allclose(batch(sdf.SmoothUnion(a, b, 0.0))(p), np.minimum(fa, fb), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(batch(sdf.SmoothUnion(a, b, 0.0))(p), np.minimum(fa, fb),
+                               rtol=0, atol=1e-14)
     np.testing.assert_allclose(batch(sdf.SmoothSubtraction(a, b, 0.0))(p), np.maximum(fa, -fb),
                                rtol=0, atol=1e-14)
 

@@ -74,6 +74,16 @@ def images():
     return out
 
 
+def test_the_suites_flags_are_the_fast_compile_preset():
+    """tests/conftest.py sets the CPU flags of "fast-compile" in $XLA_FLAGS (before JAX
+    starts, so it cannot import jaxrt): they must not drift from the preset."""
+    from conftest import TEST_XLA_FLAGS
+
+    preset = xla.XLA_PRESETS["fast-compile"]["cpu"]
+    assert TEST_XLA_FLAGS == {k: str(v).lower() for k, v in preset.items()}
+    assert XLA_OWN.keys() == preset.keys()
+
+
 def test_xla_preset_is_validated_with_the_field_name():
     assert jr.KernelOptions().xla == "default"
     with pytest.raises(ValueError, match=r"RenderSettings\.kernel\.xla = 'fast', expected one of"):

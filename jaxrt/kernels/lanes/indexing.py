@@ -19,7 +19,7 @@ import numpy as np
 from jax import lax
 
 from .elementwise import _apply, _select
-from .values import Unsupported, _is_const, _lane_shape, _obj
+from .values import Unsupported, _broadcast, _is_const, _lane_shape, _obj
 
 def _concrete_index_eval(fn, operand_shape, *index_arrays):
     """Run an indexing primitive on element ids (concrete) to see where elements go."""
@@ -100,7 +100,7 @@ def _shared_starts(starts, ranges, ctx):
 
 def _stacked(obj, shape, dtype):
     """The object array of lanes `obj` as one array [*obj.shape, *shape]."""
-    lanes = [jnp.broadcast_to(jnp.asarray(x, dtype), shape) for x in obj.reshape(-1)]
+    lanes = [_broadcast(x, shape, dtype) for x in obj.reshape(-1)]
     return jnp.stack(lanes).reshape(obj.shape + tuple(shape))
 
 
