@@ -44,7 +44,7 @@ import numpy as np
 
 from .march import tape
 from .march.heightfield import march as march_heightfield
-from .sdf.base import SDF, as_float
+from .sdf.base import SDF, as_float, check
 from .march.search import repeat
 from .trace import Hit, _slope, newton_at, stop_gradient
 from .vecmath import normalize, safe_div, safe_norm
@@ -190,10 +190,10 @@ class HeightField(SDF):
     height       a `Height` (`PlaneHeight`, `SineHeight`, `GridHeight`, or your own).
     material     material index (static).
     max_steps    static step budget of the march.
-    min_step     smallest step dt (world units, static): the finest feature resolved
-                 near the eye.
+    min_step     smallest step dt (world units; a value, so rescaling a scene does not
+                 recompile): the finest feature resolved near the eye.
     rel_step     growth of the step with distance, dt = max(min_step, rel_step · t)
-                 (static; 0 switches the growing step off).
+                 (a value; 0 switches the growing step off).
     interpolate  linear interpolation between the last two samples (static; off: the
                  first sample below the surface is the hit).
     refine_steps safeguarded Newton steps (bisection where Newton leaves the bracket)
@@ -212,8 +212,8 @@ class HeightField(SDF):
     height: Height
     material: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
-    min_step: float = eqx.field(static=True)
-    rel_step: float = eqx.field(static=True)
+    min_step: jnp.ndarray
+    rel_step: jnp.ndarray
     interpolate: bool = eqx.field(static=True)
     refine_steps: int = eqx.field(static=True)
 
@@ -224,8 +224,6 @@ class HeightField(SDF):
         for name, value, ok, expected in (
             ("material", material, _is_int(material) and material >= 0, "an integer ≥ 0"),
             ("max_steps", max_steps, _is_int(max_steps) and max_steps >= 1, "an integer ≥ 1"),
-            ("min_step", min_step, _is_num(min_step) and min_step > 0, "a number > 0"),
-            ("rel_step", rel_step, _is_num(rel_step) and rel_step >= 0, "a number ≥ 0"),
             ("interpolate", interpolate, isinstance(interpolate, bool), "true or false"),
             ("refine_steps", refine_steps, _is_int(refine_steps) and refine_steps >= 0, "an integer ≥ 0"),
         ):
@@ -234,8 +232,10 @@ class HeightField(SDF):
         self.height = height
         self.material = int(material)
         self.max_steps = int(max_steps)
-        self.min_step = float(min_step)
-        self.rel_step = float(rel_step)
+        self.min_step = check(as_float(min_step, (), "HeightField(min_step=...)"), lambda v: v > 0,
+                              "HeightField(min_step=...)", "> 0")
+        self.rel_step = check(as_float(rel_step, (), "HeightField(rel_step=...)"), lambda v: v >= 0,
+                              "HeightField(rel_step=...)", "≥ 0")
         self.interpolate = interpolate
         self.refine_steps = int(refine_steps)
 
@@ -304,10 +304,6 @@ class HeightField(SDF):
 
 def _is_int(x):
     return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
-
-
-def _is_num(x):
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and x == x
 
 
 def _newton_march(field, origin, direction, t, hit, t_lo, t_hi, steps):

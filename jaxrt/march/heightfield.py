@@ -15,14 +15,14 @@ from .sphere import rounding_floor
 
 def march(field, origin, direction, cone, t_max):
     """The bounded march of one ray against a `jaxrt.HeightField` (no gradient; its
-    static fields max_steps, min_step, rel_step, interpolate, refine_steps are the
-    options). Returns (t, hit, steps, inside, exhausted, t_lo, t_hi, closest_t,
+    fields max_steps, min_step, rel_step, interpolate, refine_steps are the options). Returns (t, hit, steps, inside, exhausted, t_lo, t_hi, closest_t,
     closest_d): the hit (t_max on a miss) and the bracket [t_lo, t_hi] of its sign
     change."""
     dtype = origin.dtype
     lo, hi = (jnp.asarray(b, dtype) for b in field.height.bounds())
     scale = 1.0 / jnp.sqrt(1.0 + jnp.asarray(field.height.slope_bound(), dtype) ** 2)
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    min_step, rel_step = (jnp.asarray(x, dtype) for x in (field.min_step, field.rel_step))
 
     def g_at(t):
         return field.gap(origin + t * direction)
@@ -53,7 +53,7 @@ def march(field, origin, direction, cone, t_max):
         t, g, _, _, steps, _, _, best, best_t, best_g = s
         # Never below the rounding floor at the sample: a step smaller than a few ulps
         # of max|p| would not move the sample (min_step = 1e-6 at scale 10³ in float32).
-        dt = jnp.maximum(jnp.maximum(field.min_step, field.rel_step * t),
+        dt = jnp.maximum(jnp.maximum(min_step, rel_step * t),
                          rounding_floor(origin + t * direction))
         t_next = jnp.minimum(t + dt, t_max)
         p = origin + t_next * direction
