@@ -575,8 +575,9 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     (the same static tree as the unrolled levels). Step i shades slot i and writes its
     children after it; leaves (the last level) write into b scratch slots at the end.
     Every step is the same computation, compiled once whatever the depth; each traces
-    one ray per camera ray (a batch over the pixels under `render`'s vmap), and a slot
-    that is dead for every pixel of a tile costs one marching step.
+    one ray per camera ray (a batch over the pixels under `render`'s vmap). On "fused"
+    a block of rays skips a slot that is dead for all of them (`tape.cond`): most slots,
+    where few pixels see a mirror or glass.
     """
     b = len(tree.branches)
     sizes = tree.rays_per_level()
@@ -595,9 +596,18 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     aovs = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes)
     levels = jnp.zeros((len(sizes), channels), origin.dtype)
 
+    def dead(ray):
+        # what `shade` gives a dead ray (no radiance, dead children), without shading it;
+        # the children keep the ray's own (unit) direction, so their slots stay finite
+        weight = jnp.zeros_like(ray.weight)
+        child = Ray(ray.origin, ray.direction, ray.cone, weight, ray.sigma, jnp.zeros((), bool))
+        return Shaded(weight, {name: child for name in tree.branches},
+                      jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes))
+
     def step(carry, i):
         buffer, levels, aovs = carry
-        out = shade(jax.tree_util.tree_map(lambda x: x[i], buffer))
+        ray = jax.tree_util.tree_map(lambda x: x[i], buffer)
+        out = tape.cond(ray.alive, shade, dead, ray)
         levels = levels.at[level_of[i]].add(out.radiance)
         aovs = jax.tree_util.tree_map(lambda a, x: jnp.where(i == 0, x, a), aovs, out.aovs)
         children = [out.children[name] for name in tree.branches]

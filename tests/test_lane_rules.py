@@ -3,6 +3,8 @@ indexing), each control-flow rule (while, scan, cond, calls) and the GPU rewrite
 checked against plain JAX (`jax.vmap` of the same one-ray function) on small inputs.
 Every case first checks that its jaxpr holds the primitive it is meant to test."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -161,6 +163,14 @@ def _cond_shared(p, a, b):
     return lax.cond(p[0] > 0, lambda x: x * a, lambda x: x - a, b)
 
 
+def _cond_per_ray(p, a, b):
+    """`tape.cond`'s form: a per-ray predicate, a loop in the taken branch, a cheap other."""
+    def live(x):
+        return lax.while_loop(lambda c: c[1] < 3.0, lambda c: (c[0] * p[1] + a, c[1] + 1.0), (x, 0.0))[0]
+
+    return lax.cond(a > p[2], live, lambda x: x * 0.0, b)
+
+
 @jax.custom_jvp
 def _softplus(x):
     return jnp.log1p(jnp.exp(x))
@@ -184,6 +194,8 @@ CONTROL = [
     ("scan_reverse", "scan", _scan_reverse, dict(roll_scans=True)),
     ("switch_per_ray", "cond", _switch, {}),
     ("cond_shared", "cond", _cond_shared, {}),
+    ("cond_per_ray", "cond", _cond_per_ray, {}),
+    ("cond_per_ray_skipping", "cond", _cond_per_ray, dict(roll_scans=True)),
     ("jit_call", "jit", lambda p, a, b: jax.jit(lambda x, y: x * y + p[0])(a, b), {}),
     ("jit_call_materialized", "jit", lambda p, a, b: jax.jit(lambda x: x * p[1])(a) + b,
      dict(materialize=True)),
@@ -243,6 +255,26 @@ def test_shared_index_into_a_slot_buffer(roll_scans):
 
     names = primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
     assert ("dynamic_update_slice" in names) == roll_scans, names
+
+
+@pytest.mark.parametrize("threshold", [-10.0, 0.0, 10.0], ids=["all", "some", "none"])
+def test_per_ray_cond_skips_a_branch_no_ray_takes(threshold):
+    """On "fused" (XLA) a two-branch cond with a per-ray predicate is a `cond` of the lane
+    program on "some ray of the block takes branch 1": the same values when all, some
+    or none of the rays take it (elsewhere every branch runs and lanes select)."""
+    params, a, b = inputs()
+    params[2] = threshold
+    closed, got, want = lanes_and_vmap(_cond_per_ray, params, a, b, roll_scans=True)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-14)
+
+    def lanes(p, a, b, roll_scans):
+        outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N, roll_scans=roll_scans)
+        return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
+
+    for roll_scans in (False, True):
+        names = primitives(jax.make_jaxpr(functools.partial(lanes, roll_scans=roll_scans))(params, a, b).jaxpr)
+        assert ("cond" in names) == roll_scans, names
 
 
 def test_while_rule_steps_each_ray_as_often_as_alone():

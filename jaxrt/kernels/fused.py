@@ -30,6 +30,7 @@ import numpy as np
 from jax import lax
 
 from ..march import form as march_form
+from ..march import tape
 from .lanes import Uniforms, Unsupported, eval_lanes, lanes_of, program_size, stack_lanes
 
 __all__ = ["map_samples", "resolve_backend", "Unsupported", "pallas_block", "tile_shape"]
@@ -167,7 +168,7 @@ def _trace_one(one, dyn, dtype, settings, backend):
     shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
 
     def trace(form):  # a new function each time: make_jaxpr caches traces by function
-        with march_form.using(form):
+        with march_form.using(form), tape.skipping(backend == "fused"):
             return jax.make_jaxpr(lambda *a: one(*a), return_shape=True)(shapes, px, px)
 
     form = march_form.resolve(settings.kernel.march_form, backend)

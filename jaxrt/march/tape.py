@@ -16,9 +16,9 @@ computes the same values, and the replay is differentiable: everything outside t
 marches (Newton steps at the recorded roots, normals, shading, penumbrae at their
 recorded minima) carries gradients (`jaxrt.render`).
 
-Marches inside `jax.vmap` or `lax.scan` write tracers of that transformation, which
-must leave it through its outputs: the program calls `tape.vmap(fn)` and `tape.scan`
-instead, which run `fn` under a sub-tape and return (recording) or take (replaying)
+Marches inside `jax.vmap`, `lax.scan` or `lax.cond` write tracers of that
+transformation, which must leave it through its outputs: the program calls
+`tape.vmap(fn)`, `tape.scan` and `tape.cond` instead, which run `fn` under a sub-tape and return (recording) or take (replaying)
 its entries as batched outputs/inputs. The entries of a tape are a list of pytrees of
 arrays, one per march (a sub-tape is one entry: the list of its entries, batched).
 """
@@ -147,3 +147,54 @@ def scan(step, init, xs):
             return step(carry, x)
 
     return jax.lax.scan(inner, init, (xs, tape.take()))
+
+
+
+@contextlib.contextmanager
+def skipping(on=True):
+    """Context: the program is traced for the "fused" lane kernels, where `cond` lets a
+    block of rays skip work that none of its rays needs."""
+    previous = getattr(_STATE, "skipping", False)
+    _STATE.skipping = on
+    try:
+        yield
+    finally:
+        _STATE.skipping = previous
+
+
+def cond(pred, fn, dead, *operands):
+    """`fn(*operands)`, whose marches are one entry on the tape; `dead(*operands)` must
+    equal it (in every value the program reads) where `pred` is false, and march nothing.
+
+    Traced for the "fused" kernels (`skipping`), this is `lax.cond(pred, fn, dead)`: a
+    block of rays in which no ray has `pred` skips `fn` (the lanes' rule), and the entry
+    holds zeros for the rays that skipped it. Elsewhere (under `vmap`, where a cond
+    would run both branches) `fn` runs for every ray, so the replay of a record calls
+    `fn` with zero entries where `pred` is false: it must stay finite there."""
+    tape = current()
+    if not getattr(_STATE, "skipping", False) or (tape is not None and tape.mode == "replay"):
+        if tape is None:
+            return fn(*operands)
+        if tape.mode == "record":
+            with recording() as sub:
+                out = fn(*operands)
+            tape.entries.append(sub.entries)
+            return out
+        with replaying(tape.take()):
+            return fn(*operands)
+    if tape is None:
+        return jax.lax.cond(pred, fn, dead, *operands)
+
+    def live(*a):
+        with recording() as sub:
+            out = fn(*a)
+        return out, sub.entries
+
+    shapes = jax.eval_shape(live, *operands)[1]
+
+    def skipped(*a):
+        return dead(*a), jax.tree_util.tree_map(lambda s: jax.numpy.zeros(s.shape, s.dtype), shapes)
+
+    out, entries = jax.lax.cond(pred, live, skipped, *operands)
+    tape.entries.append(entries)
+    return out

@@ -2,7 +2,8 @@
 
 A `while` whose condition varies between rays becomes one loop over the block that runs
 while any lane is active; inactive lanes keep their state (the semantics of `vmap` of a
-while loop). `cond` with a per-ray index evaluates every branch and selects lane-wise. A
+while loop). `cond` with a per-ray index evaluates every branch and selects lane-wise (on XLA, a
+block in which no ray takes branch 1 of two skips it). A
 `scan` is unrolled, or with `roll_scans` (the "fused" backend) kept as one loop over
 lanes (`_scan_rolled`). Calls are inlined; on XLA their results are materialised once
 (`_barrier`). Inner jaxprs are evaluated by `ctx.eval_closed` (the interpreter)."""
@@ -320,6 +321,8 @@ def _cond(eqn, ins, ctx):
     branches = eqn.params["branches"]
     if _is_const(index):
         return ctx.eval_closed(branches[int(index)], ops)
+    if ctx.roll_scans and len(branches) == 2:
+        return _cond_skipping(eqn, index, ops, ctx)
     outs = [ctx.eval_closed(b, ops) for b in branches]
     result = [o.copy() for o in outs[0]]
     n = len(branches)
@@ -331,4 +334,35 @@ def _cond(eqn, ins, ctx):
             for idx in np.ndindex(r.shape):
                 if o[idx] is not r[idx]:
                     r[idx] = _select(match, r[idx], o[idx], var.aval.dtype, ctx)
+    return result
+
+
+def _cond_skipping(eqn, index, ops, ctx):
+    """A two-branch `cond` with a per-ray index, on XLA: branch 1 runs only in blocks
+    where some ray takes it, lax.cond(any lane, select(index, branch 1, branch 0),
+    branch 0). Branch 0 runs for every block (`tape.cond`'s: the cheap one, such as a
+    dead ray of the tree), so a block of rays that all skip pays for branch 0 alone."""
+    branches = eqn.params["branches"]
+    block = ctx.block
+    take = _apply("ne", index, np.asarray(0, index.dtype)[()], dtype=np.dtype(bool), ctx=ctx)
+    base = [resolve(o, ctx) for o in ctx.eval_closed(branches[0], ops)]
+    where = [(k, idx, var.aval.dtype) for k, (o, var) in enumerate(zip(base, eqn.outvars))
+             for idx in np.ndindex(o.shape)]
+    base_flat = [_broadcast(base[k][idx], block, dt, ctx) for k, idx, dt in where]
+
+    def run():
+        ctx.scopes.append({})
+        ctx.loop_depth += 1
+        try:
+            outs = [resolve(o, ctx) for o in ctx.eval_closed(branches[1], ops)]
+            return [_broadcast(_select(take, x, outs[k][idx], dt, ctx), block, dt, ctx)
+                    for (k, idx, dt), x in zip(where, base_flat)]
+        finally:
+            ctx.loop_depth -= 1
+            ctx.scopes.pop()
+
+    flat = lax.cond(ctx.any_lane(_broadcast(take, block, bool, ctx)), run, lambda: base_flat)
+    result = [_obj(o.shape) for o in base]
+    for (k, idx, _), x in zip(where, flat):
+        result[k][idx] = x
     return result
