@@ -188,7 +188,7 @@ def _tiles(one, dyn, samples, settings, grid):
     leaves = jax.tree_util.tree_leaves(dyn)
     out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
     n = samples.shape[0]
-    tile = tile_shape(settings.rays_per_tile(n), grid)
+    tile = tile_shape(settings.rays_per_tile(n, lanes=True), grid)
     s = _to_tiles(samples, grid, tile)  # [ty, tx, th, tw, 2]
     ty, tx = s.shape[:2]
     s = s.reshape((ty * tx,) + s.shape[2:])
