@@ -658,7 +658,7 @@ def _replay_scene(dispersive=False):
 REPLAY_VARIANTS = {
     "whitted": {},
     "silhouette": dict(silhouette=True, max_depth=0),
-    "scan": dict(recursion="scan"),
+    "scan": dict(recursion="scan", max_depth=3),  # 15 slots: "fused" skips the dead ones
     "float32": dict(dtype="float32"),
 }
 

@@ -199,6 +199,19 @@ def test_fused_backends_match_jax(small_scene, backend):
     _assert_same(got, want, rgb_tol=1e-4)
 
 
+def test_fused_ray_tree_scan_skips_dead_slots_per_tile(small_scene):
+    """The sphere as a mirror, the ray tree as a scan over its 7 slots (depth 2): tiles of
+    4×4 rays that see no mirror skip every slot past the camera ray's, the others shade
+    them; the same image as the vmapped program, which shades every slot of every ray."""
+    scene, camera, settings = small_scene
+    scene = jr.Scene(scene.surface, [jr.bsdf.Mirror((0.9, 0.8, 0.7))] + list(scene.materials[1:]),
+                     scene.lights, background=scene.background)
+    settings = settings.replace(recursion="scan", max_depth=2)
+    want = jr.render(scene, camera, settings)
+    assert float(np.max(np.asarray(want.rgb))) > 0.0
+    _assert_same(jr.render(scene, camera, settings.replace(backend="fused")), want, rgb_tol=1e-4)
+
+
 @pytest.mark.slow
 def test_fused_backend_spp_and_float64(small_scene):
     scene, camera, settings = small_scene
