@@ -76,14 +76,16 @@ class KernelOptions:
                          of the scene SDF per march: each march's start, steps and
                          finish are phases of one loop), "plain" (start before the
                          loop, finish after it, Newton polish and origin settling as
-                         straight code), or "auto" (default): "plain" on "pallas",
-                         whose warps run each extra phase for their slowest lane
-                         (but "phases" for plain programs of over plain_max_lane_ops),
-                         "phases" on "fused". The "jax" path always takes the phases.
-      plain_max_lane_ops "auto" takes the plain form on "pallas" for one-ray programs
-                         of at most this many lane operations (`lanes.program_size` of
-                         the plain trace). Triton's compile time grows much faster than
-                         the program: on an H200 (jax 0.11.2) the Warp scene's plain
+                         straight code), or "auto" (default): "plain" for one-ray
+                         programs of at most plain_max_lane_ops, "phases" for larger
+                         ones. The "jax" path always takes the phases.
+      plain_max_lane_ops "auto" takes the plain form for one-ray programs of at most
+                         this many lane operations (`lanes.program_size` of both
+                         traces). The plain form renders faster (Warp scene, "fused",
+                         1024×512 on 2 CPU cores: 0.60 s against 2.47 s; the showcase
+                         7.3 s against 14.9 s at 480×270) but a large program compiles
+                         for longer in it (the showcase: 70 s against 35 s), and
+                         Triton's compile time grows much faster than the program: on an H200 (jax 0.11.2) the Warp scene's plain
                          program (3.2k; 2.4k in phases) compiles in about 5 s and
                          renders 2× faster than its phases; the 64-sphere union of
                          experiments/bench/gradients.py (9.7k plain, 6.7k in phases)

@@ -99,24 +99,22 @@ def test_golden_section_is_the_same_in_both_forms():
 
 
 def test_kernel_option_march_form():
-    """`KernelOptions.march_form` is validated, and "auto" is "plain" on "pallas" only."""
+    """`KernelOptions.march_form` is validated; `form.using` takes "phases" or "plain"."""
     assert jr.KernelOptions().march_form == "auto"
     with pytest.raises(ValueError, match="march_form"):
         jr.KernelOptions(march_form="straight")
     assert jr.RenderSettings(kernel={"march_form": "plain"}).kernel.march_form == "plain"
-    assert form.resolve("auto", "pallas") == "plain"
-    assert form.resolve("auto", "fused") == "phases"
-    assert form.resolve("phases", "pallas") == "phases"
     with pytest.raises(ValueError):
         with form.using("auto"):
             pass
     assert form.current() == "phases"
 
 
-def _pallas_program_sizes(monkeypatch, settings, limit):
+def _program_sizes(monkeypatch, settings, limit):
     """Lane-operation counts of the one-ray programs `fused._trace_one` gives for
-    "pallas" (in a render under `jax.eval_shape`, which traces but does not lower the
-    kernel), with `kernel.plain_max_lane_ops = limit`; the last is the kernel's."""
+    `settings.backend` (in a render under `jax.eval_shape`, which traces but does not
+    lower the kernel; "auto" as on a GPU, i.e. "pallas"), with
+    `kernel.plain_max_lane_ops = limit`; the last is the kernel's."""
     from jaxrt.kernels import fused
 
     sizes = []
@@ -136,19 +134,19 @@ def _pallas_program_sizes(monkeypatch, settings, limit):
     return sizes
 
 
-@pytest.mark.parametrize("option", ["auto", "plain"])
-def test_auto_on_pallas_takes_phases_for_plain_programs_over_the_limit(monkeypatch, option):
-    """"auto" runs the plain form on "pallas" up to `plain_max_lane_ops` lane operations
-    and the phases beyond (Triton compiles a large plain program for minutes); an
-    explicit "plain" is kept at any size."""
-    base = jr.RenderSettings(shadows="soft", backend="auto", max_depth=0)
+@pytest.mark.parametrize("backend,option", [("auto", "auto"), ("auto", "plain"), ("fused", "auto")])
+def test_auto_takes_phases_for_plain_programs_over_the_limit(monkeypatch, backend, option):
+    """"auto" runs the plain form up to `plain_max_lane_ops` lane operations and the
+    phases beyond (a large plain program compiles for long: minutes in Triton), on
+    "pallas" and on "fused"; an explicit "plain" is kept at any size."""
+    base = jr.RenderSettings(shadows="soft", backend=backend, max_depth=0)
     kernel = lambda name: base.replace(kernel=base.kernel.replace(march_form=name))  # noqa: E731
-    plain = _pallas_program_sizes(monkeypatch, kernel("plain"), 10**9)[-1]
-    phases = _pallas_program_sizes(monkeypatch, kernel("phases"), 10**9)[-1]
+    plain = _program_sizes(monkeypatch, kernel("plain"), 10**9)[-1]
+    phases = _program_sizes(monkeypatch, kernel("phases"), 10**9)[-1]
     assert plain > phases
-    assert _pallas_program_sizes(monkeypatch, kernel(option), plain)[-1] == plain
+    assert _program_sizes(monkeypatch, kernel(option), plain)[-1] == plain
     expected = phases if option == "auto" else plain
-    assert _pallas_program_sizes(monkeypatch, kernel(option), plain - 1)[-1] == expected
+    assert _program_sizes(monkeypatch, kernel(option), plain - 1)[-1] == expected
 
 
 def _scene():

@@ -216,7 +216,7 @@ def _render_at(scene, camera, settings, dx, dy):
         if jax.default_backend() == "gpu":  # one loop over the image: GPU loops cost per iteration
             out = jax.vmap(one)(s)
         else:
-            out = jax.lax.map(one, s, batch_size=settings.batch_size or 4096)
+            out = jax.lax.map(one, s, batch_size=settings.rays_per_tile(h * w))
         return {k: v.reshape((h, w) + v.shape[1:]) for k, v in out.items()}
 
     return run(scene, camera)

@@ -22,9 +22,9 @@ same values (to rounding):
 
 The form is chosen where a one-ray program is traced (`using`): the fused backends
 trace under `settings.kernel.march_form` (`jaxrt.KernelOptions`: "auto" is "plain"
-on "pallas" for programs of at most `kernel.plain_max_lane_ops` lane operations,
-"phases" on larger ones and on "fused"); anything else (the vmapped "jax" path) traces
-under the default, "phases". The marches read it at trace time (`current`), so a
+for programs of at most `kernel.plain_max_lane_ops` lane operations, "phases" for
+larger ones, `kernels.fused._trace_one`); anything else (the vmapped "jax" path)
+traces under the default, "phases". The marches read it at trace time (`current`), so a
 choice must be part of the jit cache key of whatever is traced under it: the
 kernel options are.
 """
@@ -59,11 +59,3 @@ def using(form):
     finally:
         _STATE.form = previous
 
-
-def resolve(option, backend):
-    """The form of a `KernelOptions.march_form` value on a fused `backend`: "auto" is
-    "plain" on "pallas" (lanes in lock-step), "phases" elsewhere (the caller falls back
-    to "phases" for plain programs over `KernelOptions.plain_max_lane_ops`)."""
-    if option == "auto":
-        return "plain" if backend == "pallas" else "phases"
-    return option
