@@ -198,6 +198,12 @@ class RenderSettings:
                        Quilez, k·d/t along the shadow ray) or "none".
       shadow_steps     step budget of a shadow ray.
       penumbra         k of the soft shadow: larger is sharper.
+      penumbra_refine_steps  golden-section steps that refine the soft shadow's sampled
+                       penumbra minimum (`march.shadow.SoftShadow.refine_steps`): its
+                       envelope gradient is then that of a stationary minimum (0.25 %
+                       of finite differences against 2–5 % unrefined); 0 takes Quilez's
+                       sampled minimum as it is, as Warp's example does (the Warp scene
+                       on 2 CPU cores renders about 1.8× faster).
       shadow_max_distance  shadow rays towards directional lights stop here
                        (None: max_distance); towards point lights at the light.
       max_depth        Whitted recursion depth (reflected/refracted rays); only used
@@ -298,6 +304,7 @@ class RenderSettings:
     shadows: str = "hard"
     shadow_steps: int = 64
     penumbra: float = 8.0
+    penumbra_refine_steps: int = 8
     shadow_max_distance: float | None = None
     max_depth: int = 2
     ray_offset: float = 4.0
@@ -360,6 +367,8 @@ class RenderSettings:
         need(self.shadows in _SHADOW_MODES, "shadows", f"one of {_SHADOW_MODES}")
         need(_is_int(self.shadow_steps) and self.shadow_steps >= 1, "shadow_steps", "an integer ≥ 1")
         need(_is_num(self.penumbra) and self.penumbra > 0, "penumbra", "a number > 0")
+        need(_is_int(self.penumbra_refine_steps) and self.penumbra_refine_steps >= 0,
+             "penumbra_refine_steps", "an integer ≥ 0")
         need(
             self.shadow_max_distance is None
             or (_is_num(self.shadow_max_distance) and self.shadow_max_distance > 0),

@@ -212,6 +212,7 @@ REFUSED = [
     ("ray_offset", 1.0), ("ray_offset", 0.5), ("spawn_steps", -1), ("spp", 0), ("seed", 1.5),
     ("wavelengths", -1), ("dtype", "float16"), ("batch_size", 0), ("devices", -1),
     ("silhouette_width", 0.0), ("silhouette_width", 17.0), ("max_steps", 1.5),
+    ("penumbra_refine_steps", -1), ("penumbra_refine_steps", 1.5),
 ]
 
 

@@ -69,7 +69,7 @@ class SoftShadow:
     def of(cls, settings):
         """The soft-shadow options of a `RenderSettings`."""
         return cls(max_steps=settings.shadow_steps, hit_epsilon=settings.hit_epsilon,
-                   penumbra=settings.penumbra)
+                   penumbra=settings.penumbra, refine_steps=settings.penumbra_refine_steps)
 
 
 #: The phases of the soft-shadow loop (`march`), one evaluation of f each: the sign at
