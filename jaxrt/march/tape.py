@@ -18,8 +18,8 @@ recorded minima) carries gradients (`jaxrt.render`).
 
 Marches inside `jax.vmap`, `lax.scan` or `lax.cond` write tracers of that
 transformation, which must leave it through its outputs: the program calls
-`tape.vmap(fn)`, `tape.scan` and `tape.cond` instead, which run `fn` under a sub-tape and return (recording) or take (replaying)
-its entries as batched outputs/inputs. The entries of a tape are a list of pytrees of
+`tape.vmap(fn)`, `tape.scan` and `tape.cond` instead, which run `fn` under a sub-tape
+and return (recording) or take (replaying) its entries as batched outputs/inputs. The entries of a tape are a list of pytrees of
 arrays, one per march (a sub-tape is one entry: the list of its entries, batched).
 """
 
@@ -147,7 +147,6 @@ def scan(step, init, xs):
             return step(carry, x)
 
     return jax.lax.scan(inner, init, (xs, tape.take()))
-
 
 
 @contextlib.contextmanager
