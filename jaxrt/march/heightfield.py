@@ -16,8 +16,8 @@ from .sphere import rounding_floor
 def march(field, origin, direction, cone, t_max):
     """The bounded march of one ray against a `jaxrt.HeightField` (no gradient; its
     fields max_steps, min_step, rel_step, interpolate, refine_steps are the options).
-    Returns (t, hit, steps, inside, exhausted, t_lo, t_hi, closest_t, closest_d): the hit (t_max on a miss) and the bracket [t_lo, t_hi] of its sign
-    change."""
+    Returns (t, hit, steps, inside, exhausted, t_lo, t_hi, closest_t, closest_d): the
+    hit (t_max on a miss) and the bracket [t_lo, t_hi] of its sign change."""
     dtype = origin.dtype
     lo, hi = (jnp.asarray(b, dtype) for b in field.height.bounds())
     scale = 1.0 / jnp.sqrt(1.0 + jnp.asarray(field.height.slope_bound(), dtype) ** 2)

@@ -3,8 +3,9 @@
 A `while` whose condition varies between rays becomes one loop over the block that runs
 while any lane is active; inactive lanes keep their state (the semantics of `vmap` of a
 while loop). `cond` with a per-ray index evaluates every branch and selects lane-wise
-(on XLA, a block in which no ray takes branch 1 of two skips it). A `scan` is unrolled, or with `roll_scans` (the "fused" backend) kept as one loop over
-lanes (`_scan_rolled`). Calls are inlined; on XLA their results are materialised once
+(on XLA, a block in which no ray takes branch 1 of two skips it). A `scan` is
+unrolled, or with `roll_scans` (the "fused" backend) kept as one loop over lanes
+(`_scan_rolled`). Calls are inlined; on XLA their results are materialised once
 (`_barrier`). Inner jaxprs are evaluated by `ctx.eval_closed` (the interpreter)."""
 
 import jax.numpy as jnp
