@@ -147,8 +147,11 @@ def histogram(jaxpr, counts=None):
 
 
 def program_size(scene, backend, mode):
-    """(equations apart from PER_LEAF ones, PER_LEAF equations, scene leaves)."""
-    settings = jr.RenderSettings(backend=backend, batch_size=None)
+    """(equations apart from PER_LEAF ones, PER_LEAF equations, scene leaves). One march
+    form: "auto" takes the plain form for lane programs within `plain_max_lane_ops`, a
+    count of lane operations that grows with a stacked group's rows (8 spheres: plain,
+    72: phases), so it is pinned here to the phases that large scenes take."""
+    settings = jr.RenderSettings(backend=backend, batch_size=None, kernel={"march_form": "phases"})
 
     def image(s):
         return jr.render(s, CAMERA, settings).rgb
