@@ -85,7 +85,8 @@ class KernelOptions:
                          1024×512 on 2 CPU cores: 0.60 s against 2.47 s; the showcase
                          7.3 s against 14.9 s at 480×270) but a large program compiles
                          for longer in it (the showcase: 70 s against 35 s), and
-                         Triton's compile time grows much faster than the program: on an H200 (jax 0.11.2) the Warp scene's plain
+                         Triton's compile time grows much faster than the program: on
+                         an H200 (jax 0.11.2) the Warp scene's plain
                          program (3.2k; 2.4k in phases) compiles in about 5 s and
                          renders 2× faster than its phases; the 64-sphere union of
                          experiments/bench/gradients.py (9.7k plain, 6.7k in phases)
@@ -231,8 +232,8 @@ class RenderSettings:
       batch_size       rays per tile: tiles are traced one after another and each
                        stops as soon as its rays are done (None: whole image at once;
                        "auto", the default: CPU_TILE_RAYS on a CPU (CPU_LANE_TILE_RAYS
-                       for "fused"), GPU_TILE_RAYS on a GPU, where tiles run one after another as separate kernel
-                       launches: the showcase at 480×270 with backend "jax" rendered
+                       for "fused"), GPU_TILE_RAYS on a GPU, where tiles run one after
+                       another as separate kernel launches: the showcase at 480×270 with backend "jax" rendered
                        in 341 ms in tiles of 4096 against 20.5 ms whole, H200,
                        jax 0.11.2; `rays_per_tile`).
       backend          how the per-ray program is batched: "auto" (default: "pallas" on

@@ -3,8 +3,6 @@ indexing), each control-flow rule (while, scan, cond, calls) and the GPU rewrite
 checked against plain JAX (`jax.vmap` of the same one-ray function) on small inputs.
 Every case first checks that its jaxpr holds the primitive it is meant to test."""
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -58,6 +56,15 @@ def lanes_and_vmap(fn, params, a, b, **options):
 
     want = jax.tree_util.tree_leaves(jax.vmap(fn, in_axes=(None, 0, 0))(jnp.asarray(params), a, b))
     return closed, [np.asarray(x) for x in lanes(params, a, b)], [np.asarray(x) for x in want]
+
+
+def lane_program_primitives(closed, params, a, b, **options):
+    """The primitives of the lane program that `eval_lanes` builds from `closed`."""
+    def lanes(p, a, b):
+        outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N, **options)
+        return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
+
+    return primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
 
 
 def index(a, n):
@@ -249,11 +256,7 @@ def test_shared_index_into_a_slot_buffer(roll_scans):
     for g, w in zip(got, want, strict=True):
         np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-14)
 
-    def lanes(p, a, b):
-        outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N, roll_scans=roll_scans)
-        return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
-
-    names = primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
+    names = lane_program_primitives(closed, params, a, b, roll_scans=roll_scans)
     assert ("dynamic_update_slice" in names) == roll_scans, names
 
 
@@ -267,13 +270,8 @@ def test_per_ray_cond_skips_a_branch_no_ray_takes(threshold):
     closed, got, want = lanes_and_vmap(_cond_per_ray, params, a, b, roll_scans=True)
     for g, w in zip(got, want, strict=True):
         np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-14)
-
-    def lanes(p, a, b, roll_scans):
-        outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N, roll_scans=roll_scans)
-        return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
-
     for roll_scans in (False, True):
-        names = primitives(jax.make_jaxpr(functools.partial(lanes, roll_scans=roll_scans))(params, a, b).jaxpr)
+        names = lane_program_primitives(closed, params, a, b, roll_scans=roll_scans)
         assert ("cond" in names) == roll_scans, names
 
 
