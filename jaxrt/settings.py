@@ -59,14 +59,17 @@ class KernelOptions:
                          to 3.4e-3 and rendered in 0.304 ms instead of 0.332 ms (H200).
       auto_max_lane_ops_fused, auto_max_lane_ops_pallas
                          backend "auto" renders one-ray programs of more lane operations
-                         than this (`lanes.program_size`: elementwise operations, times
-                         the rays of the batched levels of a ray tree) with "jax": their
-                         compile time grows with it, Triton's faster than linearly. The
-                         Warp scene has 3.1k lane operations (Pallas compiles it in 3 s
-                         on an H200), the showcase 38k (Pallas: 304 s; "fused": 56 s on 2
-                         CPU cores), the glass scene 671k at max_depth 6 with an
-                         unrolled tree, 10.5k with its file's recursion = "scan"
-                         ("fused": 20 s at 16×12).
+                         than this (`kernels.fused._lane_ops`: elementwise operations,
+                         times the rays of the batched levels of a ray tree; on "fused"
+                         an operation on the scene's values alone counts once) with
+                         "jax": their compile time grows with it, Triton's faster than
+                         linearly. Counted as Pallas does, the Warp scene has 3.1k lane
+                         operations (Pallas compiles it in 3 s on an H200), the showcase
+                         38k (Pallas: 304 s), the glass scene 671k at max_depth 6 with
+                         an unrolled tree, 10.5k with its file's recursion = "scan".
+                         Counted as "fused" does (phases): Warp 2.2k, showcase 13k
+                         ("fused": 33 s on 2 CPU cores), glass 6.3k ("fused": 20 s at
+                         16×12).
       pallas_block       rays per Pallas program instance when batch_size does not say
                          otherwise (`fused.pallas_block`): a 4×8 tile on one warp. On an
                          H100 (Warp scene) 0.431 ms against 0.475 ms for 16×16 tiles on
@@ -80,8 +83,9 @@ class KernelOptions:
                          programs of at most plain_max_lane_ops, "phases" for larger
                          ones. The "jax" path always takes the phases.
       plain_max_lane_ops "auto" takes the plain form for one-ray programs of at most
-                         this many lane operations (`lanes.program_size` of both
-                         traces). The plain form renders faster (Warp scene, "fused",
+                         this many lane operations (`kernels.fused._lane_ops` of both
+                         traces: a stacked group counts the same for any number of rows
+                         on "fused"). The plain form renders faster (Warp scene, "fused",
                          1024×512 on 2 CPU cores: 0.60 s against 2.47 s; the showcase
                          7.3 s against 14.9 s at 480×270) but a large program compiles
                          for longer in it (the showcase: 70 s against 35 s), and

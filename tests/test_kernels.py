@@ -296,6 +296,29 @@ def test_auto_backend_falls_back_where_lanes_cannot_run():
     assert resolve_backend("auto") == ("pallas" if jax.default_backend() == "gpu" else "fused")
 
 
+def test_program_size_counts_shared_values_once_and_per_ray_values_per_element():
+    """`lanes.program_size`: an equation that reads a per-ray value costs one lane
+    operation per element of its result; one that reads only shared values (a stacked
+    group's rows of parameters) costs one, whatever the number of rows; loop bodies
+    count once, and a carry that meets a per-ray value is per ray."""
+    from jaxrt.kernels.lanes import program_size
+
+    def fn(rows, px):
+        shared = jnp.sin(rows) * 2.0  # 2 equations on shared rows
+        per_ray = jnp.cos(shared * px)  # 2 equations of len(rows) lanes
+
+        def body(carry, row):
+            return carry + row * px, None  # 2 equations, per ray through the carry
+
+        total, _ = jax.lax.scan(body, jnp.zeros((), rows.dtype), rows)
+        return jnp.sum(per_ray) + total  # the scan, a reduction and an add: 1 lane each
+
+    for n in (4, 64):
+        closed = jax.make_jaxpr(fn)(jnp.zeros(n), jnp.zeros(()))  # no weak types: no casts
+        assert program_size(closed.jaxpr, [False, True]) == 2 + 2 * n + 2 + 3, n
+        assert program_size(closed.jaxpr) == 4 * n + 2 + 3, n  # all inputs per ray
+
+
 def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly():
     """backend="auto" renders a program of more lane operations than
     settings.kernel.auto_max_lane_ops_<backend>

@@ -147,11 +147,10 @@ def histogram(jaxpr, counts=None):
 
 
 def program_size(scene, backend, mode):
-    """(equations apart from PER_LEAF ones, PER_LEAF equations, scene leaves). One march
-    form: "auto" takes the plain form for lane programs within `plain_max_lane_ops`, a
-    count of lane operations that grows with a stacked group's rows (8 spheres: plain,
-    72: phases), so it is pinned here to the phases that large scenes take."""
-    settings = jr.RenderSettings(backend=backend, batch_size=None, kernel={"march_form": "phases"})
+    """(equations apart from PER_LEAF ones, PER_LEAF equations, scene leaves). "auto"'s
+    choice of march form (`plain_max_lane_ops`) follows a lane-operation count in which
+    a stacked group's shared rows count once, so it is the same for 8 spheres and 72."""
+    settings = jr.RenderSettings(backend=backend, batch_size=None)
 
     def image(s):
         return jr.render(s, CAMERA, settings).rgb

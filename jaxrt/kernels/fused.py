@@ -97,7 +97,7 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
         try:
-            size = program_size(_trace_one(one, dyn, samples.dtype, settings, backend)[0].jaxpr)
+            size = _lane_ops(_trace_one(one, dyn, samples.dtype, settings, backend)[0], backend)
             limit = settings.kernel.auto_max_lane_ops(backend)
             if size > limit:
                 raise Unsupported(
@@ -176,11 +176,22 @@ def _trace_one(one, dyn, dtype, settings, backend):
 
     option, limit = settings.kernel.march_form, settings.kernel.plain_max_lane_ops
     closed, out_shapes = trace("phases" if option == "auto" else option)
-    if option == "auto" and program_size(closed.jaxpr) <= limit:
+    if option == "auto" and _lane_ops(closed, backend) <= limit:
         plain = trace("plain")
-        if program_size(plain[0].jaxpr) <= limit:
+        if _lane_ops(plain[0], backend) <= limit:
             closed, out_shapes = plain
     return closed, out_shapes
+
+
+def _lane_ops(closed, backend):
+    """`program_size` of a one-sample program of `_trace_one` (its inputs: the scene's
+    values, then the sample's two coordinates). On "fused" an operation on the scene's
+    values alone counts once (lanes compute it once per tile, and scans stay loops), so a
+    stacked group's rows do not count; Pallas unrolls scans, so there every input counts
+    per element, and a larger group is a larger program."""
+    n = len(closed.jaxpr.invars)
+    per_ray = [backend != "fused"] * (n - 2) + [True, True]
+    return program_size(closed.jaxpr, per_ray)
 
 
 # ----------------------------------------------------------------- "fused": XLA tiles

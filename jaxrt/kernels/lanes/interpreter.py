@@ -12,7 +12,8 @@ from .control import _call, _cond, _scan, _while
 from .elementwise import _elementwise, _round
 from .gpu import _SUBSTITUTES, _fma, _fma_plan, _substitute, rewrite
 from .indexing import _dynamic_slice, _dynamic_update_slice, _gather, _scatter
-from .jax_internals import CALLS, ELEMENTWISE, IDENTITY, ClosedJaxpr, Jaxpr, is_dropvar, is_literal
+from .jax_internals import (CALLS, ELEMENTWISE, IDENTITY, ClosedJaxpr, Jaxpr, _scan_counts,
+                            is_dropvar, is_literal, while_parts)
 from .structural import (_arg_reduce, _broadcast_in_dim, _concatenate, _dot_general,
                          _expand_dims, _iota, _optimization_barrier, _pad, _reduce, _reshape,
                          _rev, _slice, _split, _squeeze, _stack, _transpose, _unstack)
@@ -173,21 +174,64 @@ def _param_table(args, param_pos):
     return {dt: ps[0] if len(ps) == 1 else jnp.concatenate(ps) for dt, ps in parts.items()}
 
 
-def program_size(jaxpr):
+def program_size(jaxpr, per_ray=None):
     """Lane operations of a one-ray program: its equations (those of loop bodies and
-    calls once), each counted once per element of its result, as `eval_lanes`
-    scalarises them (a batch of 2^k rays in a ray tree: 2^k lanes per operation)."""
+    calls once), an equation that reads a per-ray value counted once per element of its
+    result, as `eval_lanes` scalarises them (a batch of 2^k rays in a ray tree: 2^k lanes
+    per operation), and one that reads only shared values (the scene's parameters,
+    constants) once: lanes compute it once for a whole block, whatever its shape, so a
+    stacked group of primitives counts the same for 8 rows as for 72.
+
+    Args:
+      jaxpr: the program (a Jaxpr).
+      per_ray: one bool per input of `jaxpr`, true for a value that varies from ray to
+        ray (default: all of them).
+    """
+    return _size(jaxpr, [True] * len(jaxpr.invars) if per_ray is None else list(per_ray))[0]
+
+
+def _size(jaxpr, per_ray):
+    """(lane operations, per-ray flags of the outputs) of `jaxpr` (`program_size`)."""
+    varying = {v: f for v, f in zip(jaxpr.invars, per_ray)}
+
+    def reads(v):
+        return not is_literal(v) and varying.get(v, False)
+
     total = 0
     for eqn in jaxpr.eqns:
+        flags = [reads(v) for v in eqn.invars]
+        any_ray = any(flags)
         shape = getattr(eqn.outvars[0].aval, "shape", ()) if eqn.outvars else ()
-        total += max(1, int(np.prod(shape)))
-        for p in eqn.params.values():
-            for sub in p if isinstance(p, (list, tuple)) else [p]:
-                if isinstance(sub, ClosedJaxpr):
-                    total += program_size(sub.jaxpr)
-                elif isinstance(sub, Jaxpr):
-                    total += program_size(sub)
-    return total
+        total += max(1, int(np.prod(shape))) if any_ray else 1
+        for sub, sub_flags in _bodies(eqn, flags):
+            total += _size(sub, sub_flags)[0]
+        for v in eqn.outvars:
+            varying[v] = any_ray
+    return total, [reads(v) for v in jaxpr.outvars]
+
+
+def _bodies(eqn, flags):
+    """(jaxpr, per-ray flags of its inputs) for each body of a loop, branch or call. A
+    loop's carries count as per ray when any operand is (a carry may become per ray in
+    the body)."""
+    p, any_ray = eqn.params, any(flags)
+    if eqn.primitive.name == "while":
+        nc, nb, cond, body = while_parts(p)
+        carry = [any_ray] * (len(flags) - nc - nb)
+        return [(cond.jaxpr, flags[:nc] + carry), (body.jaxpr, flags[nc:nc + nb] + carry)]
+    if eqn.primitive.name == "scan":
+        consts, carries = _scan_counts(p)
+        return [(p["jaxpr"].jaxpr, flags[:consts] + [any_ray] * carries + flags[consts + carries:])]
+    if eqn.primitive.name == "cond":
+        return [(b.jaxpr, flags[1:]) for b in p["branches"]]
+    out = []
+    for value in p.values():
+        for sub in value if isinstance(value, (list, tuple)) else [value]:
+            sub = sub.jaxpr if isinstance(sub, ClosedJaxpr) else sub
+            if isinstance(sub, Jaxpr):
+                same = len(sub.invars) == len(flags)
+                out.append((sub, flags if same else [any_ray] * len(sub.invars)))
+    return out
 
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
