@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from . import sharding, silhouette, xla
 from .camera import pixel_samples
 from .integrator import trace_radiance
-from .kernels.fused import resolve_backend
+from .kernels.fused import _from_tiles, _to_tiles, resolve_backend, tile_shape
 from .march import tape
 from .sdf.stack import prestack
 from .settings import RenderSettings
@@ -129,7 +129,8 @@ def _recorded(kernel, params, samples, settings, grid, offset):
         out, kinds = _record(kernel, eqx.combine(primals[0], static), primals[1], settings,
                              grid, offset)
         entries = jax.lax.stop_gradient(out["tape"])
-        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds)  # noqa: E731
+        tiles = _replay_tiles(settings, grid)
+        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds, tiles)  # noqa: E731
         _, tangent = jax.jvp(replay, primals, tangents)
         return out["image"], tangent
 
@@ -169,7 +170,7 @@ def _record(kernel, params, samples, settings, grid, offset):
     return out, kinds[0]
 
 
-def _replay(kernel, params, samples, entries, kinds):
+def _replay(kernel, params, samples, entries, kinds, tiles=None):
     """The kernel vmapped over all `samples` at once with every march read from `entries`
     (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable.
 
@@ -182,7 +183,12 @@ def _replay(kernel, params, samples, entries, kinds):
     The floats of large arrays (voxel grids, height maps, textures: over
     `PER_SAMPLE_MAX` values) stay shared: each sample reads a few of them, so their
     cotangent is a scatter-add into one array, where per-sample copies would take
-    samples × size (a 129³ grid at 128×128: 131 GiB)."""
+    samples × size (a 129³ grid at 128×128: 131 GiB).
+
+    With `tiles` (`_replay_tiles`: the block's grid and a tile shape), the samples are
+    replayed in `lax.map` tiles, each a vmap over a named axis, so that a slot of the
+    ray tree that no ray of a tile needs is skipped (`tape.skipping_tiles`), as the lane
+    kernel skips it in the same tiles."""
     dyn, static = eqx.partition(params, eqx.is_inexact_array)
     small, large = eqx.partition(dyn, lambda x: x.size <= PER_SAMPLE_MAX)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
@@ -193,8 +199,41 @@ def _replay(kernel, params, samples, entries, kinds):
         with tape.replaying(entry):
             return kernel((*camera.generate_ray(s[0], s[1]), s), scene, camera)
 
-    per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, n), small)
-    return jax.vmap(one)(per_sample, samples, entries)
+    if tiles is None:
+        per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, n), small)
+        return jax.vmap(one)(per_sample, samples, entries)
+    grid, (th, tw) = tiles
+
+    def replay_tile(block):
+        per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, th * tw), small)
+        with tape.skipping_tiles(_TILE_AXIS):
+            return jax.vmap(one, axis_name=_TILE_AXIS)(per_sample, *block)
+
+    def to_tiles(x):  # [n, ...] → [tiles, th·tw, ...], the lane kernel's tiles
+        x = _to_tiles(x, grid, (th, tw))
+        return x.reshape((-1, th * tw) + x.shape[4:])
+
+    ty, tx = -(-grid[0] // th), -(-grid[1] // tw)
+    out = jax.lax.map(replay_tile, jax.tree_util.tree_map(to_tiles, (samples, entries)))
+    return jax.tree_util.tree_map(
+        lambda x: _from_tiles(x.reshape((ty, tx, th, tw) + x.shape[2:]), grid), out)
+
+
+_TILE_AXIS = "jaxrt_replay_rays"
+
+
+def _replay_tiles(settings, grid):
+    """(grid, tile shape) of `_replay`: on "fused", for a ray tree in one scan
+    (`recursion = "scan"`), the lane kernel's tiles of the block `grid` (rows, columns
+    of samples), so that the replay skips the slots of the tree that the record skipped;
+    else None (one vmap over every sample: a slot no ray of the whole image needs is
+    rare, and on a GPU the replay is one wide program)."""
+    if settings.recursion != "scan" or settings.max_depth == 0:
+        return None
+    if resolve_backend(settings.backend) != "fused":
+        return None
+    tile = tile_shape(settings.rays_per_tile(grid[0] * grid[1], lanes=True), grid)
+    return None if tile == tuple(grid) else (grid, tile)
 
 
 PER_SAMPLE_MAX = 4096
@@ -229,7 +268,8 @@ def _replay_image(scene, camera, settings):
     kernel = _sample_kernel(settings)
     grid = (camera.height, camera.width * settings.spp)
     out, kinds = _record(kernel, (scene, camera), samples, settings, grid, (0, 0))
-    return out["image"], _replay(kernel, (scene, camera), samples, out["tape"], kinds)
+    tiles = _replay_tiles(settings, grid)
+    return out["image"], _replay(kernel, (scene, camera), samples, out["tape"], kinds, tiles)
 
 
 def _fused(scene, camera, samples, settings, kernel, grid, offset):

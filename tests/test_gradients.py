@@ -658,7 +658,9 @@ def _replay_scene(dispersive=False):
 REPLAY_VARIANTS = {
     "whitted": {},
     "silhouette": dict(silhouette=True, max_depth=0),
-    "scan": dict(recursion="scan", max_depth=3),  # 15 slots: "fused" skips the dead ones
+    # 15 slots: the lane kernel skips those dead in a tile of 16 rays, and so does the
+    # replay (the same 4×4 tiles of the 6×10 samples, edge tiles filled up)
+    "scan": dict(recursion="scan", max_depth=3, batch_size=16),
     "float32": dict(dtype="float32"),
 }
 
@@ -678,6 +680,24 @@ def test_replay_image_equals_the_record(variant):
     for name in record:
         a, b = np.asarray(record[name]), np.asarray(replay[name])
         assert np.max(np.abs(a - b)) <= tol * max(1.0, np.max(np.abs(a))), name
+
+
+def test_replay_skips_the_slots_a_tile_does_not_need():
+    """On "fused", the replay of a scan ray tree runs in tiles (`render._replay_tiles`) in
+    which a slot that no ray needs is skipped: a `cond` on a `psum` over the tile's rays
+    (not a select of both branches, which is what a per-ray cond becomes under vmap),
+    in the gradient's program (its values: test_replay_image_equals_the_record[scan])."""
+    from test_kinds import histogram
+
+    from jaxrt.render import _replay_tiles
+
+    scene, camera, settings = _replay_scene()
+    settings = settings.replace(backend="fused", **REPLAY_VARIANTS["scan"])
+    loss = lambda p: jnp.sum(jr.render(*p, settings).rgb)  # noqa: E731
+    counts = histogram(jax.make_jaxpr(jax.grad(loss))((scene, camera)).jaxpr)
+    assert counts["psum"] >= 1 and counts["cond"] >= 1, counts
+    assert _replay_tiles(settings, (6, 10)) == ((6, 10), (4, 4))
+    assert _replay_tiles(settings.replace(recursion="unrolled"), (6, 10)) is None
 
 
 def _lane_call_outputs(jaxpr):
@@ -729,11 +749,12 @@ def test_replay_gradients_equal_the_reference_path_on_every_march(recursion):
     """Mirror, glass, soft shadows (now differentiable), a height field and its shadows:
     the record/replay gradient of every scene and camera float equals the "jax" path's.
     With the ray tree as a scan (3 levels: 15 slots, most dead for every ray), "fused"
-    skips the slots dead for the whole block, whose records are zeros that the replay
-    reads."""
+    skips the slots dead for a whole tile of 16 rays, whose records are zeros, and the
+    replay skips them in the same tiles (`render._replay_tiles`)."""
     scene, camera, settings = _replay_scene()
-    settings = settings.replace(backend="jax", recursion=recursion,
-                                max_depth=3 if recursion == "scan" else settings.max_depth)
+    settings = settings.replace(backend="jax", recursion=recursion)
+    if recursion == "scan":
+        settings = settings.replace(max_depth=3, batch_size=16)
     Problem(scene, camera, settings, erode=0).check_replay("fused")
 
 

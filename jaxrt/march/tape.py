@@ -161,26 +161,50 @@ def skipping(on=True):
         _STATE.skipping = previous
 
 
+@contextlib.contextmanager
+def skipping_tiles(axis_name):
+    """Context: the program is replayed under `jax.vmap(..., axis_name=axis_name)` over a
+    tile of rays (a `lax.map` iteration), where `cond` lets the tile skip work that none
+    of its rays needs: the any-ray test is a `psum` over that axis, so the predicate of
+    the `lax.cond` is not batched and the cond is not turned into a select."""
+    previous = getattr(_STATE, "tile_axis", None)
+    _STATE.tile_axis = axis_name
+    try:
+        yield
+    finally:
+        _STATE.tile_axis = previous
+
+
 def cond(pred, fn, dead, *operands):
     """`fn(*operands)`, whose marches are one entry on the tape; `dead(*operands)` must
     equal it (in every value the program reads) where `pred` is false, and march nothing.
 
     Traced for the "fused" kernels (`skipping`), this is `lax.cond(pred, fn, dead)`: a
     block of rays in which no ray has `pred` skips `fn` (the lanes' rule), and the entry
-    holds zeros for the rays that skipped it. Elsewhere (under `vmap`, where a cond
-    would run both branches) `fn` runs for every ray, so the replay of a record calls
-    `fn` with zero entries where `pred` is false: it must stay finite there."""
+    holds zeros for the rays that skipped it. Replayed over tiles (`skipping_tiles`), a
+    tile in which no ray has `pred` skips `fn` likewise. Elsewhere (under `vmap`, where a
+    cond would run both branches) `fn` runs for every ray, so the replay of a record
+    calls `fn` with zero entries where `pred` is false: it must stay finite there."""
     tape = current()
-    if not getattr(_STATE, "skipping", False) or (tape is not None and tape.mode == "replay"):
+    if tape is not None and tape.mode == "replay":
+        entries = tape.take()
+
+        def replayed(*a):
+            with replaying(entries):
+                return fn(*a)
+
+        axis = getattr(_STATE, "tile_axis", None)
+        if axis is None:
+            return replayed(*operands)
+        any_ray = jax.lax.psum(pred.astype(jax.numpy.int32), axis) > 0
+        return jax.lax.cond(any_ray, replayed, dead, *operands)
+    if not getattr(_STATE, "skipping", False):
         if tape is None:
             return fn(*operands)
-        if tape.mode == "record":
-            with recording() as sub:
-                out = fn(*operands)
-            tape.entries.append(sub.entries)
-            return out
-        with replaying(tape.take()):
-            return fn(*operands)
+        with recording() as sub:
+            out = fn(*operands)
+        tape.entries.append(sub.entries)
+        return out
     if tape is None:
         return jax.lax.cond(pred, fn, dead, *operands)
 
