@@ -161,6 +161,11 @@ def skipping(on=True):
         _STATE.skipping = previous
 
 
+def skips_blocks():
+    """Whether the program is traced for the "fused" lane kernels (`skipping`)."""
+    return getattr(_STATE, "skipping", False)
+
+
 @contextlib.contextmanager
 def skipping_tiles(axis_name):
     """Context: the program is replayed under `jax.vmap(..., axis_name=axis_name)` over a
@@ -198,7 +203,7 @@ def cond(pred, fn, dead, *operands):
             return replayed(*operands)
         any_ray = jax.lax.psum(pred.astype(jax.numpy.int32), axis) > 0
         return jax.lax.cond(any_ray, replayed, dead, *operands)
-    if not getattr(_STATE, "skipping", False):
+    if not skips_blocks():
         if tape is None:
             return fn(*operands)
         with recording() as sub:
