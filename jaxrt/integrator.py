@@ -577,7 +577,8 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     Every step is the same computation, compiled once whatever the depth; each traces
     one ray per camera ray (a batch over the pixels under `render`'s vmap). On "fused"
     a block of rays skips a slot that is dead for all of them (`tape.cond`): most slots,
-    where few pixels see a mirror or glass.
+    where few pixels see a mirror or glass; the replay of its record skips it in the
+    same tiles (`render._replay_tiles`).
     """
     b = len(tree.branches)
     sizes = tree.rays_per_level()
@@ -607,10 +608,10 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     # Vmapped (the "jax" backend, the replay), `ray` (slot i) is read from the buffer at
     # the end of the step before, after its write: XLA:CPU copies a buffer that a step
     # reads and then updates whole, in every step (O(slots²): on the glass scene's 127
-    # slots the replay took 1.5 s against 0.6 s). The lane kernels ("fused", where
-    # `tape.cond` skips per block) read it first: the other order rendered the glass
-    # scene in 17.0 s against 10.4 s.
-    ahead = not tape.skips_blocks()
+    # slots the replay took 1.5 s against 0.6 s). The lane kernels read it first: on
+    # "fused" the other order rendered the glass scene in 17.0 s against 10.4 s, and
+    # Pallas (which unrolls the scan) was not measured with it.
+    ahead = tape.lane_backend() is None
 
     def read(buffer, i):
         return jax.tree_util.tree_map(lambda x: x[i], buffer)

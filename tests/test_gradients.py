@@ -696,8 +696,9 @@ def test_replay_skips_the_slots_a_tile_does_not_need():
     loss = lambda p: jnp.sum(jr.render(*p, settings).rgb)  # noqa: E731
     counts = histogram(jax.make_jaxpr(jax.grad(loss))((scene, camera)).jaxpr)
     assert counts["psum"] >= 1 and counts["cond"] >= 1, counts
-    assert _replay_tiles(settings, (6, 10)) == ((6, 10), (4, 4))
-    assert _replay_tiles(settings.replace(recursion="unrolled"), (6, 10)) is None
+    assert _replay_tiles(settings, (6, 10), scene) == ((6, 10), (4, 4))
+    assert _replay_tiles(settings.replace(recursion="unrolled"), (6, 10), scene) is None
+    assert _replay_tiles(settings.replace(max_depth=2), (6, 10), scene) is None  # 7 slots
 
 
 def _lane_call_outputs(jaxpr):

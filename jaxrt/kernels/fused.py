@@ -171,7 +171,7 @@ def _trace_one(one, dyn, dtype, settings, backend):
     shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
 
     def trace(form):  # a new function each time: make_jaxpr caches traces by function
-        with march_form.using(form), tape.skipping(backend == "fused"):
+        with march_form.using(form), tape.lanes(backend):
             return jax.make_jaxpr(lambda *a: one(*a), return_shape=True)(shapes, px, px)
 
     option, limit = settings.kernel.march_form, settings.kernel.plain_max_lane_ops

@@ -150,20 +150,26 @@ def scan(step, init, xs):
 
 
 @contextlib.contextmanager
-def skipping(on=True):
-    """Context: the program is traced for the "fused" lane kernels, where `cond` lets a
-    block of rays skip work that none of its rays needs."""
-    previous = getattr(_STATE, "skipping", False)
-    _STATE.skipping = on
+def lanes(backend):
+    """Context: the program is traced for the lane kernels of `backend` ("fused" or
+    "pallas"). On "fused", `cond` lets a block of rays skip work that none of its rays
+    needs."""
+    previous = getattr(_STATE, "lanes", None)
+    _STATE.lanes = backend
     try:
         yield
     finally:
-        _STATE.skipping = previous
+        _STATE.lanes = previous
+
+
+def lane_backend():
+    """The lane backend the program is traced for (`lanes`), or None."""
+    return getattr(_STATE, "lanes", None)
 
 
 def skips_blocks():
-    """Whether the program is traced for the "fused" lane kernels (`skipping`)."""
-    return getattr(_STATE, "skipping", False)
+    """Whether `cond` skips per block of rays: traced for "fused" (`lanes`)."""
+    return lane_backend() == "fused"
 
 
 @contextlib.contextmanager
@@ -184,7 +190,7 @@ def cond(pred, fn, dead, *operands):
     """`fn(*operands)`, whose marches are one entry on the tape; `dead(*operands)` must
     equal it (in every value the program reads) where `pred` is false, and march nothing.
 
-    Traced for the "fused" kernels (`skipping`), this is `lax.cond(pred, fn, dead)`: a
+    Traced for the "fused" kernels (`lanes`), this is `lax.cond(pred, fn, dead)`: a
     block of rays in which no ray has `pred` skips `fn` (the lanes' rule), and the entry
     holds zeros for the rays that skipped it. Replayed over tiles (`skipping_tiles`), a
     tile in which no ray has `pred` skips `fn` likewise. Elsewhere (under `vmap`, where a
