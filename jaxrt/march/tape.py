@@ -150,16 +150,20 @@ def scan(step, init, xs):
 
 
 @contextlib.contextmanager
+def _setting(name, value):
+    previous = getattr(_STATE, name, None)
+    setattr(_STATE, name, value)
+    try:
+        yield
+    finally:
+        setattr(_STATE, name, previous)
+
+
 def lanes(backend):
     """Context: the program is traced for the lane kernels of `backend` ("fused" or
     "pallas"). On "fused", `cond` lets a block of rays skip work that none of its rays
     needs."""
-    previous = getattr(_STATE, "lanes", None)
-    _STATE.lanes = backend
-    try:
-        yield
-    finally:
-        _STATE.lanes = previous
+    return _setting("lanes", backend)
 
 
 def lane_backend():
@@ -172,18 +176,12 @@ def skips_blocks():
     return lane_backend() == "fused"
 
 
-@contextlib.contextmanager
 def skipping_tiles(axis_name):
     """Context: the program is replayed under `jax.vmap(..., axis_name=axis_name)` over a
     tile of rays (a `lax.map` iteration), where `cond` lets the tile skip work that none
     of its rays needs: the any-ray test is a `psum` over that axis, so the predicate of
     the `lax.cond` is not batched and the cond is not turned into a select."""
-    previous = getattr(_STATE, "tile_axis", None)
-    _STATE.tile_axis = axis_name
-    try:
-        yield
-    finally:
-        _STATE.tile_axis = previous
+    return _setting("tile_axis", axis_name)
 
 
 def cond(pred, fn, dead, *operands):
