@@ -608,10 +608,12 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     # Vmapped (the "jax" backend, the replay), `ray` (slot i) is read from the buffer at
     # the end of the step before, after its write: XLA:CPU copies a buffer that a step
     # reads and then updates whole, in every step (O(slots²): on the glass scene's 127
-    # slots the replay took 1.5 s against 0.6 s). The lane kernels read it first: on
-    # "fused" the other order rendered the glass scene in 17.0 s against 10.4 s, and
-    # Pallas (which unrolls the scan) was not measured with it.
+    # slots the replay took 1.5 s against 0.6 s), and the children are written with
+    # `_write_slots`, whose transpose does not copy it either. The lane kernels read it
+    # first: on "fused" the other order rendered the glass scene in 17.0 s against
+    # 10.4 s, and Pallas (which unrolls the scan) was not measured with it.
     ahead = tape.lane_backend() is None
+    write = _write_slots if ahead else jax.lax.dynamic_update_slice_in_dim
 
     def read(buffer, i):
         return jax.tree_util.tree_map(lambda x: x[i], buffer)
@@ -625,13 +627,40 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
         children = [out.children[name] for name in tree.branches]
         start = jnp.where(i < first_leaf, b * i + 1, slots)
         buffer = jax.tree_util.tree_map(
-            lambda buf, *xs: jax.lax.dynamic_update_slice_in_dim(buf, jnp.stack(xs), start, 0),
-            buffer, *children)
+            lambda buf, *xs: write(buf, jnp.stack(xs), start, 0), buffer, *children)
         return (buffer, read(buffer, i + 1) if ahead else None, levels, aovs), None
 
     init = (buffer, root if ahead else None, levels, aovs)
     (_, _, levels, aovs), _ = tape.scan(step, init, jnp.arange(slots))
     return levels, aovs
+
+
+def _write_slots(buffer, x, start, axis):
+    """`lax.dynamic_update_slice_in_dim(buffer, x, start, axis)` for a slot buffer of the
+    scan tree, where the slots written hold zeros (or, the leaves' scratch slots, are
+    never read into the result): its tangent is
+    `ḃuffer + dynamic_update_slice(0, ẋ, start)`, an addition whose transpose passes the
+    cotangent through and slices ẋ's out, so the gradient's scan updates its cotangent
+    buffer in place. The plain rule's transpose zeroes the written slots of the
+    cotangent, after reading them, and XLA:CPU then copied the whole buffer twice in
+    every step (O(slots²): a 127-slot tree of 19 200 rays took 7.4 s against 1.9 s).
+    Integer and boolean buffers (no tangent) take the plain update."""
+    if not jnp.issubdtype(buffer.dtype, jnp.inexact):
+        return jax.lax.dynamic_update_slice_in_dim(buffer, x, start, axis)
+    return _write_zero_slots(buffer, x, start, axis)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _write_zero_slots(buffer, x, start, axis):
+    return jax.lax.dynamic_update_slice_in_dim(buffer, x, start, axis)
+
+
+@_write_zero_slots.defjvp
+def _write_zero_slots_jvp(axis, primals, tangents):
+    buffer, x, start = primals
+    d_buffer, d_x, _ = tangents
+    d_x = jax.lax.dynamic_update_slice_in_dim(jnp.zeros_like(d_buffer), d_x, start, axis)
+    return _write_zero_slots(buffer, x, start, axis), d_buffer + d_x
 
 
 def trace_radiance(scene, origin, direction, cone, settings, spectral=None):

@@ -187,11 +187,12 @@ def program_size(jaxpr, per_ray=None):
       per_ray: one bool per input of `jaxpr`, true for a value that varies from ray to
         ray (default: all of them).
     """
-    return _size(jaxpr, [True] * len(jaxpr.invars) if per_ray is None else list(per_ray))[0]
+    return _size(jaxpr, [True] * len(jaxpr.invars) if per_ray is None else list(per_ray))
 
 
 def _size(jaxpr, per_ray):
-    """(lane operations, per-ray flags of the outputs) of `jaxpr` (`program_size`)."""
+    """Lane operations of `jaxpr` whose inputs are per ray where `per_ray` says
+    (`program_size`)."""
     varying = {v: f for v, f in zip(jaxpr.invars, per_ray)}
 
     def reads(v):
@@ -204,10 +205,10 @@ def _size(jaxpr, per_ray):
         shape = getattr(eqn.outvars[0].aval, "shape", ()) if eqn.outvars else ()
         total += max(1, int(np.prod(shape))) if any_ray else 1
         for sub, sub_flags in _bodies(eqn, flags):
-            total += _size(sub, sub_flags)[0]
+            total += _size(sub, sub_flags)
         for v in eqn.outvars:
             varying[v] = any_ray
-    return total, [reads(v) for v in jaxpr.outvars]
+    return total
 
 
 def _bodies(eqn, flags):
