@@ -199,6 +199,29 @@ def test_fused_backends_match_jax(small_scene, backend):
     _assert_same(got, want, rgb_tol=1e-4)
 
 
+def test_auto_traces_the_one_sample_program_once_per_kernel(small_scene, monkeypatch):
+    """"auto" checks the lane program's size and builds its kernel abstractly before the
+    real one: the one-sample program (seconds to trace for a large scene) is traced once
+    for all three. A gradient traces two kernels: the plain render (the primal of
+    `render._recorded`'s custom JVP, traced because `render` is a jit) and the record."""
+    import jaxrt.kernels.fused as fused
+
+    scene, camera, settings = small_scene
+    calls = []
+    trace_one = fused._trace_one
+    monkeypatch.setattr(fused, "_trace_one", lambda *a: calls.append(a[-1]) or trace_one(*a))
+
+    def loss(scene, steps):  # settings of their own: no trace cached by another test
+        settings_ = settings.replace(backend="auto", max_steps=steps)
+        return jnp.mean(jr.render(scene, camera, settings_).rgb)
+
+    jax.jit(loss, static_argnums=1).lower(scene, 37)
+    assert calls == [resolve_backend("auto")]
+    calls.clear()
+    jax.jit(jax.grad(loss), static_argnums=1).lower(scene, 38)
+    assert calls == [resolve_backend("auto")] * 2
+
+
 def test_fused_ray_tree_scan_skips_dead_slots_per_tile(small_scene):
     """The sphere as a mirror, the ray tree as a scan over its 7 slots (depth 2): tiles of
     4×4 rays that see no mirror skip every slot past the camera ray's, the others shade

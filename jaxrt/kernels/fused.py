@@ -73,11 +73,21 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
     def one(dyn_, px, py):
         return fn(eqx.combine(dyn_, static), px, py)
 
+    program = []
+
+    def traced():
+        # the one-sample program, traced once: "auto" reads its size, then builds the
+        # kernel twice (abstractly, then in the caller's trace); the showcase's program
+        # takes seconds to trace
+        if not program:
+            program.append(_trace_one(one, dyn, samples.dtype, settings, backend))
+        return program[0]
+
     @jax.custom_vjp
     def run(dyn_, samples_):
         if backend == "pallas":
-            return _pallas(one, dyn_, samples_, settings, grid, centres)
-        return _tiles(one, dyn_, samples_, settings, grid)
+            return _pallas(traced(), dyn_, samples_, settings, grid, centres)
+        return _tiles(traced(), dyn_, samples_, settings, grid)
 
     def run_fwd(dyn_, samples_):
         return run(dyn_, samples_), (dyn_, samples_)
@@ -97,7 +107,7 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
         try:
-            size = _lane_ops(_trace_one(one, dyn, samples.dtype, settings, backend)[0], backend)
+            size = _lane_ops(traced()[0], backend)
             limit = settings.kernel.auto_max_lane_ops(backend)
             if size > limit:
                 raise Unsupported(
@@ -197,9 +207,10 @@ def _lane_ops(closed, backend):
 # ----------------------------------------------------------------- "fused": XLA tiles
 
 
-def _tiles(one, dyn, samples, settings, grid):
-    dtype = samples.dtype
-    closed, out_shapes = _trace_one(one, dyn, dtype, settings, "fused")
+def _tiles(traced, dyn, samples, settings, grid):
+    """The one-sample program `traced` (`_trace_one`: jaxpr, output shapes) evaluated by
+    `eval_lanes` in `lax.map` over square tiles of `grid`."""
+    closed, out_shapes = traced
     leaves = jax.tree_util.tree_leaves(dyn)
     out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
     n = samples.shape[0]
@@ -295,11 +306,11 @@ def _pow2(n, at_least=1):
     return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
 
-def _pallas(one, dyn, samples, settings, grid, centres=None):
+def _pallas(traced, dyn, samples, settings, grid, centres=None):
     from jax.experimental import pallas as pl
 
     dtype = samples.dtype
-    closed, out_shapes = _trace_one(one, dyn, dtype, settings, "pallas")
+    closed, out_shapes = traced
     leaves, _ = jax.tree_util.tree_flatten(dyn)
     out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
 
