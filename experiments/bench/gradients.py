@@ -24,7 +24,7 @@ budgets (--max-steps 64 1024) and the script prints the ratios.
     python experiments/bench/gradients.py [--config configs/experiments/gradients.toml]
         [--scenes warp spheres64 showcase glass] [--size warp=2048x1024 ...]
         [--max-steps 64 1024] [--repeats N] [--backend auto] [--silhouette]
-        [--reference] [--out out/bench_gradients]
+        [--reference] [--profile CALLS] [--out out/bench_gradients]
 
 Sizes default to the config's `gpu` sizes on a GPU and its `cpu` sizes elsewhere.
 """
@@ -53,6 +53,9 @@ def main(argv=None):
     ap.add_argument("--silhouette", action="store_true", help="silhouette estimator on")
     ap.add_argument("--reference", action="store_true",
                     help='also time value_and_grad through backend="jax"')
+    ap.add_argument("--profile", type=int, default=0, metavar="CALLS",
+                    help="also print the device time per kernel of value_and_grad and of the "
+                         "forward, over CALLS calls under jax.profiler (gpu_profile.py)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--one", nargs=4, metavar=("SCENE", "W", "H", "MAX_STEPS"),
                     help=argparse.SUPPRESS)  # internal: measure one configuration
@@ -62,6 +65,7 @@ def main(argv=None):
     cfg["backend"] = args.backend or cfg["backend"]
     cfg["silhouette"] = args.silhouette
     cfg["reference"] = args.reference
+    cfg["profile"] = args.profile
     if args.one:
         name, w, h, steps = args.one
         print(json.dumps(measure(cfg, name, int(w), int(h), int(steps))))
@@ -90,6 +94,7 @@ def main(argv=None):
                    str(cfg["repeats"]), "--backend", cfg["backend"], "--one", name, str(w),
                    str(h), str(steps)]
             cmd += ["--silhouette"] * args.silhouette + ["--reference"] * args.reference
+            cmd += ["--profile", str(args.profile)]
             res = subprocess.run(cmd, capture_output=True, text=True)
             if res.returncode != 0:
                 print(f"{' '.join(cmd)} failed:\n{res.stderr[-3000:]}", flush=True)
@@ -97,6 +102,8 @@ def main(argv=None):
             row = json.loads(res.stdout.strip().splitlines()[-1])
             rows.append(row)
             print(_format(row), flush=True)
+            if row.get("profile"):
+                print(row["profile"], flush=True)
     print()
     for name in scenes:
         mine = {r["max_steps"]: r for r in rows if r["scene"] == name}
@@ -212,10 +219,27 @@ def measure(cfg, name, width, height, max_steps):
         "gradient_floats": int(sum(x.size for x in leaves)), "finite": finite,
         "loss": float(value),
     }
+    if cfg["profile"]:
+        row["profile"] = _profile(fns, params, cfg["profile"])
     if cfg["reference"]:
         row.update(reference_s=median(times["reference"]), reference_ratio=ratio("reference"),
                    compile_reference_s=compile_ref)
     return row
+
+
+def _profile(fns, params, calls):
+    """The device time per kernel of the forward and of value_and_grad, as text."""
+    import contextlib
+    import io
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from gpu_profile import print_kernel_times
+
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        for k in ("render", "grad"):
+            print_kernel_times(lambda k=k: fns[k](params), calls, k)
+    return text.getvalue()
 
 
 def _brighter(light, factor):
