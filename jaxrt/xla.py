@@ -30,6 +30,8 @@ import warnings
 #:                   and `xla_backend_optimization_level = 1`: LLVM's -O1 pipeline instead
 #:                   of -O3 (XLA's default is 3). No flag that changes float semantics
 #:                   (no fast math, the same FTZ/denormal mode). Nothing on a GPU.
+#:                   jax 0.11's XLA:CPU has no legacy emitter (nor the flag): there
+#:                   "fast-compile" is -O1 alone (`usable` drops the flag, warning once).
 #: Figures: docs/performance.md ("XLA compiler options").
 XLA_PRESETS = {
     "default": {},
