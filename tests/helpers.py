@@ -5,6 +5,9 @@ to the profile of a solid of revolution, a root of the ellipsoid's Lagrange cond
 not from the formulas in `jaxrt.sdf`, so that the tests compare two derivations.
 """
 
+import contextlib
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -293,3 +296,14 @@ def cluttered_scene():
                 jr.DirectionalLight((0.3, 1.0, -0.2), (1.0, 1.0, 1.0))],
         background=(0.05, 0.05, 0.08),
     )
+
+
+@contextlib.contextmanager
+def warnings_as_errors():
+    """Every warning raised as an error, but JAX's own deprecation of its Pallas Triton
+    backend (jax 0.11; the GPU kernel uses it until it moves to Mosaic GPU)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warnings.filterwarnings("ignore", message="The Pallas Triton backend is deprecated",
+                                category=DeprecationWarning)
+        yield

@@ -1,7 +1,6 @@
 """jaxrt.kernels: the lane-wise (fused, Pallas) evaluation computes the same function as
 vmap, and the fused render backends give the same images and gradients as "jax"."""
 
-import warnings
 
 import jax
 import jax.numpy as jnp
@@ -12,6 +11,8 @@ import jaxrt as jr
 from jaxrt.kernels import Unsupported, eval_lanes, lanes_of, map_samples
 from jaxrt.kernels.lanes import stack_lanes
 from jaxrt.kernels.fused import resolve_backend
+
+from helpers import warnings_as_errors
 
 
 def _lane(x):
@@ -91,7 +92,8 @@ def test_fused_multiply_adds_and_shared_values_keep_the_function():
         return (jnp.sum(w * v) + jnp.dot(n1, jnp.stack([a, b, a - b])) - n2[0] * b
                 + p[3] - a * x)
 
-    want = jax.vmap(shared_twice, (None, 0, 0))(params, a, b)
+    with jax.default_matmul_precision("highest"):  # a GPU's XLA: TF32 dots otherwise
+        want = jax.vmap(shared_twice, (None, 0, 0))(params, a, b)
     closed = jax.make_jaxpr(shared_twice)(params, a[0], b[0])
     calls = []
     ptx = {"fma": lambda x, y, z: calls.append(1) or x * y + z, "neg": jnp.negative}
@@ -287,8 +289,7 @@ def test_multi_view_gradient_step_runs_the_lanes_and_matches_jax():
 
     p = jnp.asarray([0.45, 0.12, 0.15])
     want_value, want_grad = jax.value_and_grad(loss)(p, "jax")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
+    with warnings_as_errors():
         value, grad = jax.value_and_grad(loss)(p, "auto")
     assert np.all(np.asarray(want_grad) != 0.0)
     np.testing.assert_allclose(float(value), float(want_value), rtol=1e-6)
@@ -372,8 +373,7 @@ def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly():
         out = map_samples(fn, jnp.float64(2.0), samples, settings, reference)
     np.testing.assert_allclose(out["v"], reference(jnp.float64(2.0), samples)["v"])
     settings = settings_with_limit(10 * size)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # under the limit: the fused path, no warning
+    with warnings_as_errors():  # under the limit: the fused path, no warning
         out = map_samples(fn, jnp.float64(2.0), samples, settings, reference)
     np.testing.assert_allclose(out["v"], reference(jnp.float64(2.0), samples)["v"])
 
@@ -448,8 +448,7 @@ def test_kernel_options_are_part_of_the_cache_key():
     camera = jr.PerspectiveCamera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
                                   fov=45.0, width=6, height=4)
     base = jr.RenderSettings(backend="auto", batch_size=64, aovs=(), shadows="none", max_depth=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
+    with warnings_as_errors():
         first = jr.render(scene, camera, base)
     backend = resolve_backend("auto")
     tiny = base.replace(kernel=base.kernel.replace(**{f"auto_max_lane_ops_{backend}": 1}))

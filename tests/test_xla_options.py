@@ -153,13 +153,14 @@ def test_options_reach_the_compiler_and_are_part_of_the_cache_key(images, compil
     assert hash(settings) != hash(_settings("jax", "default"))
     f = compile_render(_scene(), CAMERA, settings)
     renders = [opts for name, opts in compiles if "render" in name]
-    assert renders == [FAST]
+    # With no options (a GPU) the program is the fixture's, which JAX may serve compiled.
+    assert renders == [FAST] or (not FAST and renders == [])
     np.testing.assert_allclose(np.asarray(f(_scene(), CAMERA).rgb), images["jax", "fast-compile"],
                                rtol=0, atol=1e-6)
     cameras = jr.views.stack_cameras([CAMERA, CAMERA])
     jr.render_views(_scene(), cameras, settings).rgb.block_until_ready()
     views = [opts for name, opts in compiles if "render_views" in name]
-    assert views == [FAST]
+    assert views == [FAST]  # a program of its own: compiled on every platform
     jr.render_views(_scene(radius=0.4), cameras, settings).rgb.block_until_ready()
     assert len([n for n, _ in compiles if "render_views" in n]) == 1
 
