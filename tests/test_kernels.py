@@ -1,7 +1,6 @@
 """jaxrt.kernels: the lane-wise (fused, Pallas) evaluation computes the same function as
 vmap, and the fused render backends give the same images and gradients as "jax"."""
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
