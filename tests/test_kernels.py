@@ -203,9 +203,8 @@ def test_fused_backends_match_jax(small_scene, backend):
 def test_auto_traces_the_one_sample_program_once_per_kernel(small_scene, monkeypatch):
     """"auto" checks the lane program's size and builds its kernel abstractly before the
     real one: the one-sample program (seconds to trace for a large scene) is traced once
-    for all three. A gradient traces one kernel, the recording one: `render`'s JVP is
-    taken inside its jit (`render.differentiable_jit`), so the plain kernel (the primal
-    of `render._recorded`'s custom JVP) is not traced first."""
+    for all three. A gradient traces two kernels: the plain render (the primal of
+    `render._recorded`'s custom JVP, traced because `render` is a jit) and the record."""
     import jaxrt.kernels.fused as fused
 
     scene, camera, settings = small_scene
@@ -221,7 +220,7 @@ def test_auto_traces_the_one_sample_program_once_per_kernel(small_scene, monkeyp
     assert calls == [resolve_backend("auto")]
     calls.clear()
     jax.jit(jax.grad(loss), static_argnums=1).lower(scene, 38)
-    assert calls == [resolve_backend("auto")]
+    assert calls == [resolve_backend("auto")] * 2
 
 
 def test_fused_ray_tree_scan_skips_dead_slots_per_tile(small_scene):
