@@ -46,37 +46,29 @@ def render(scene, camera, settings=None):
     """
     settings = RenderSettings() if settings is None else settings
     dtype = _dtype(settings)
-    return differentiable_jit(_render, _cast((scene, camera), dtype), settings)
+    dyn, static = eqx.partition(_cast((scene, camera), dtype), eqx.is_array)
+
+    @jax.custom_jvp
+    def image(dyn):
+        return xla.jitted(_render, settings)(*eqx.combine(dyn, static), settings)
+
+    @image.defjvp
+    def image_jvp(primals, tangents):
+        return xla.jitted(_render_jvp, settings)(primals[0], tangents[0], static, settings)
+
+    return image(dyn)
 
 
-def differentiable_jit(jit_fn, params, settings, *args):
-    """`jit_fn(*params, settings, *args)` (an `eqx.filter_jit` function of a render
-    program), compiled with the settings' XLA options (`jaxrt.xla.jitted`), whose JVP is
-    `jax.jvp` of its body inside one jit of its own (`_jvp_of`), not of the jit.
+@eqx.filter_jit
+def _render_jvp(dyn, d_dyn, static, settings):
+    """`render` and its JVP, one program: `jax.jvp` of `_render`'s body (not of the jit).
 
     A derivative taken through the jit would trace its body to a jaxpr first, the plain
     kernel with it, and then differentiate that jaxpr, whose plain kernel the derivative
     drops (`_recorded`'s JVP runs the recording kernel instead): on the showcase a
-    fifth of a gradient's tracing. With the custom JVP at the jit's boundary the body
-    is traced once, under the JVP (forward and reverse mode both).
+    fifth of a gradient's tracing. Here the body is traced once, under the JVP.
     """
-    dyn, static = eqx.partition(params, eqx.is_array)
-
-    @jax.custom_jvp
-    def call(dyn):
-        return xla.jitted(jit_fn, settings)(*eqx.combine(dyn, static), settings, *args)
-
-    @call.defjvp
-    def call_jvp(primals, tangents):
-        return xla.jitted(_jvp_of, settings)(jit_fn, primals[0], tangents[0], static, settings, args)
-
-    return call(dyn)
-
-
-@eqx.filter_jit
-def _jvp_of(jit_fn, dyn, d_dyn, static, settings, args):
-    body = lambda d: jit_fn.__wrapped__(*eqx.combine(d, static), settings, *args)  # noqa: E731
-    return jax.jvp(body, (dyn,), (d_dyn,))
+    return jax.jvp(lambda d: _render.__wrapped__(*eqx.combine(d, static), settings), (dyn,), (d_dyn,))
 
 
 @eqx.filter_jit

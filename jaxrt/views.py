@@ -29,8 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
 
+from . import xla
 from .camera import PerspectiveCamera, _Camera
-from .render import differentiable_jit, render
+from .render import render
 from .settings import RenderSettings
 
 __all__ = ["stack_cameras", "orbit", "render_views", "num_views", "view"]
@@ -108,7 +109,7 @@ def render_views(scene, cameras, settings=None, *, devices=None):
         raise ValueError("`render_views(cameras=...)` needs cameras stacked along a view axis "
                          "(eye [V, 3]); use jaxrt.views.stack_cameras or jaxrt.views.orbit")
     mesh = None if devices is None else _view_mesh(devices, num_views(cameras))
-    return differentiable_jit(_render_views, (scene, cameras), settings, mesh)
+    return xla.jitted(_render_views, settings)(scene, cameras, settings, mesh)
 
 
 def _view_mesh(devices, n):
