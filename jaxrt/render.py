@@ -46,29 +46,8 @@ def render(scene, camera, settings=None):
     """
     settings = RenderSettings() if settings is None else settings
     dtype = _dtype(settings)
-    dyn, static = eqx.partition(_cast((scene, camera), dtype), eqx.is_array)
-
-    @jax.custom_jvp
-    def image(dyn):
-        return xla.jitted(_render, settings)(*eqx.combine(dyn, static), settings)
-
-    @image.defjvp
-    def image_jvp(primals, tangents):
-        return xla.jitted(_render_jvp, settings)(primals[0], tangents[0], static, settings)
-
-    return image(dyn)
-
-
-@eqx.filter_jit
-def _render_jvp(dyn, d_dyn, static, settings):
-    """`render` and its JVP, one program: `jax.jvp` of `_render`'s body (not of the jit).
-
-    A derivative taken through the jit would trace its body to a jaxpr first, the plain
-    kernel with it, and then differentiate that jaxpr, whose plain kernel the derivative
-    drops (`_recorded`'s JVP runs the recording kernel instead): on the showcase a
-    fifth of a gradient's tracing. Here the body is traced once, under the JVP.
-    """
-    return jax.jvp(lambda d: _render.__wrapped__(*eqx.combine(d, static), settings), (dyn,), (d_dyn,))
+    scene, camera = _cast((scene, camera), dtype)
+    return xla.jitted(_render, settings)(scene, camera, settings)
 
 
 @eqx.filter_jit
