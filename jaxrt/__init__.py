@@ -3,8 +3,12 @@
 This module re-exports the public API; reading it is reading the API index.
 """
 
+from . import xla as xla
+
+xla.add_process_flags()  # before JAX starts its backend: it reads $XLA_FLAGS then
+
 from . import bsdf as bsdf, config as config, heightfield as heightfield, io as io, sdf as sdf, spectral as spectral
-from . import config_writer as config_writer, fit as fit, views as views, xla as xla
+from . import config_writer as config_writer, fit as fit, views as views
 from .heightfield import HeightField as HeightField
 from .camera import OrthographicCamera as OrthographicCamera, PerspectiveCamera as PerspectiveCamera
 from .lights import DirectionalLight as DirectionalLight, PointLight as PointLight
