@@ -47,47 +47,45 @@ XLA_PRESETS = {
 }
 
 
-#: XLA backend options jaxrt adds to `$XLA_FLAGS` (`add_process_flags`): {key: value}.
+#: XLA backend options jaxrt adds to `$XLA_FLAGS` on jax >= 0.12 (`add_process_flags`):
+#: {key: value}.
 #:
-#:   xla_cpu_small_while_loop_byte_threshold = 0: XLA:CPU (jax >= 0.11) compiles a
-#:   `while` whose cost analysis reports fewer bytes accessed than this threshold as one
-#:   LLVM function instead of a loop of per-fusion kernels ("small while loop hoisting");
-#:   with XLA's default threshold every loop we tried was hoisted (states up to 16 MB).
-#:   A render program's tile loop then becomes one function of the whole lane program,
-#:   and LLVM spends minutes on it, on one thread: the showcase's render program (96x54,
-#:   "auto" -> "fused", jax 0.12.0.1, 2 cores) compiled in 103 s with the hoisting and
-#:   24 s without, and rendered in 3.1 s against 2.1 s. 0 turns the hoisting off. jax
-#:   0.10's XLA:CPU does not hoist with its default (the option changes nothing there);
-#:   a GPU ignores it. Figures: docs/performance.md
+#:   xla_cpu_small_while_loop_byte_threshold = 1000000: XLA:CPU compiles a `while` whose
+#:   cost analysis reports fewer bytes accessed than this threshold as one LLVM function
+#:   instead of a loop of per-fusion kernels ("small while loop hoisting"). With jax
+#:   0.12's default threshold every loop we tried was hoisted (states up to 16 MB):
+#:   a render program's tile loop became one function of the whole lane program, and
+#:   LLVM spent minutes on it, on one thread (the showcase's render program, 96x54,
+#:   "auto" -> "fused", jax 0.12.0.1, 2 cores: 103 s; 25 s with this option). 1e6
+#:   bytes keeps the hoisting for small loops (a march of the Warp scene renders faster
+#:   hoisted) and not for a program's large ones. jax 0.10 and 0.11 hoist none of
+#:   these loops with their default: jaxrt leaves them be. A GPU ignores the option. Figures: docs/performance.md
 #:   ("Session 23").
-PROCESS_OPTIONS = {"xla_cpu_small_while_loop_byte_threshold": "0"}
+PROCESS_OPTIONS = {"xla_cpu_small_while_loop_byte_threshold": "1000000"}
 
 
 def add_process_flags(environ=None):
-    """Add `PROCESS_OPTIONS` to `$XLA_FLAGS` (as `--xla_backend_extra_options=k=v`, which
-    XLA merges with any other such flag), for the backend that JAX has yet to start.
+    """On jax >= 0.12, add `PROCESS_OPTIONS` to `$XLA_FLAGS` (as
+    `--xla_backend_extra_options=k=v`, which XLA merges with any other such flag), for
+    the backend that JAX has yet to start.
 
-    A key that `$XLA_FLAGS` already names is left as it is (set it there to keep XLA's
-    behaviour, e.g. to another threshold).
-    If JAX started its backend before jaxrt was imported, `$XLA_FLAGS` has been read:
-    nothing is added, and a warning says so (on jax >= 0.11, where it matters). Returns
-    the keys added."""
+    A key that `$XLA_FLAGS` already names is left as it is (set it there for another
+    threshold). If JAX started its backend before jaxrt was imported, `$XLA_FLAGS` has
+    been read: nothing is added, and a warning says so. Returns the keys added."""
+    import jax
+
     environ = os.environ if environ is None else environ
     flags = environ.get("XLA_FLAGS", "")
     missing = {k: v for k, v in PROCESS_OPTIONS.items() if k not in flags}
-    if not missing:
-        return []
-    if _backend_started():
-        import jax
-
-        if jax.__version_info__ >= (0, 11):
-            options = ",".join(f"{k}={v}" for k, v in missing.items())
-            warnings.warn(f"jaxrt: JAX started before jaxrt was imported, so XLA_FLAGS cannot get "
-                          f"--xla_backend_extra_options={options} (render programs compile several "
-                          f"times slower on a CPU without it): import jaxrt before the first JAX "
-                          f"computation, or set it in XLA_FLAGS", stacklevel=3)
+    if not missing or jax.__version_info__ < (0, 12):
         return []
     added = ",".join(f"{k}={v}" for k, v in missing.items())
+    if _backend_started():
+        warnings.warn(f"jaxrt: JAX started before jaxrt was imported, so XLA_FLAGS cannot get "
+                      f"--xla_backend_extra_options={added} (large render programs compile "
+                      f"several times slower on a CPU without it): import jaxrt before the first "
+                      f"JAX computation, or set it in XLA_FLAGS", stacklevel=3)
+        return []
     environ["XLA_FLAGS"] = f"{flags} --xla_backend_extra_options={added}".strip()
     return list(missing)
 

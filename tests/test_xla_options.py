@@ -137,14 +137,15 @@ def test_an_unknown_flag_is_dropped_with_a_warning(monkeypatch):
     assert np.all(np.isfinite(np.asarray(image.rgb)))
 
 
-#: Compiles a while loop in a fresh process (jaxrt imported first, as a script would) and
-#: prints $XLA_FLAGS and whether XLA:CPU hoisted the loop into one function.
+#: Compiles a small and a large while loop in a fresh process (jaxrt imported first, as a
+#: script would) and prints $XLA_FLAGS and whether XLA:CPU hoisted each into one function.
 _HOIST_PROBE = """
 import os, jaxrt, jax, jax.numpy as jnp
 def f(x):
     return jax.lax.while_loop(lambda c: c[0] < 9, lambda c: (c[0] + 1, jnp.sin(c[1])), (0, x))[1]
-text = jax.jit(f).lower(jnp.ones((64, 64))).compile().as_text()
-print(os.environ["XLA_FLAGS"]); print("xla_cpu_small_call" in text)
+print(os.environ.get("XLA_FLAGS", ""))
+for shape in [(16, 16), (1024, 512)]:  # 1 KiB and 2 MiB of state
+    print("xla_cpu_small_call" in jax.jit(f).lower(jnp.ones(shape)).compile().as_text())
 """
 
 
@@ -157,33 +158,34 @@ def _hoist_probe(xla_flags):
     run = subprocess.run([sys.executable, "-c", _HOIST_PROBE], env=env, capture_output=True,
                          text=True, timeout=300)
     assert run.returncode == 0, run.stderr
-    flags, hoisted = run.stdout.strip().splitlines()[-2:]
-    return flags, hoisted == "True"
+    flags, small, large = run.stdout.strip().splitlines()[-3:]
+    return flags, small == "True", large == "True"
 
 
-def test_import_stops_xla_cpu_hoisting_a_while_into_one_function():
-    """XLA:CPU (jax >= 0.11) compiles a `while` as one LLVM function unless its backend
-    option `xla_cpu_small_while_loop_byte_threshold` is 0; importing jaxrt adds that to
-    $XLA_FLAGS (merged with the flags there) before JAX reads them, and leaves a value the
-    user set alone: with a threshold of 1e9 bytes XLA:CPU hoists (jax 0.10's default
-    does not hoist; jax 0.11's does)."""
+def test_import_keeps_xla_cpu_from_hoisting_a_large_while_into_one_function():
+    """XLA:CPU compiles a `while` that accesses fewer bytes than its backend option
+    `xla_cpu_small_while_loop_byte_threshold` as one LLVM function. On jax >= 0.12
+    (whose default hoists both) importing jaxrt sets it to 1e6 in $XLA_FLAGS (merged with
+    the flags there) before JAX reads them: a 1 KiB loop is still hoisted, a 2 MiB one is
+    not. The defaults of jax 0.10 and 0.11 hoist neither, and jaxrt leaves them be. A value the user set is kept: with 1e9 bytes
+    both are hoisted."""
     key = "xla_cpu_small_while_loop_byte_threshold"
-    assert xla.PROCESS_OPTIONS == {key: "0"}
-    flags, hoisted = _hoist_probe("--xla_cpu_enable_fast_math=false")
-    assert flags == f"--xla_cpu_enable_fast_math=false --xla_backend_extra_options={key}=0"
-    assert not hoisted
+    assert xla.PROCESS_OPTIONS == {key: "1000000"}
+    new = jax.__version_info__ >= (0, 12)
+    flags, small, large = _hoist_probe("--xla_cpu_enable_fast_math=false")
+    ours = f" --xla_backend_extra_options={key}=1000000" if new else ""
+    assert flags == "--xla_cpu_enable_fast_math=false" + ours
+    assert (small, large) == (new, False)
     users = f"--xla_backend_extra_options={key}=1000000000"
-    flags, hoisted = _hoist_probe(users)
-    assert flags == users
-    assert hoisted
+    assert _hoist_probe(users) == (users, True, True)
 
 
 def test_process_flags_come_too_late_once_jax_has_started():
     """Here JAX has started (the suite's renders): $XLA_FLAGS is read, so nothing is added,
-    with a warning on jax >= 0.11 where the option matters."""
+    with a warning on jax >= 0.12 where the option matters."""
     jnp.ones(1).block_until_ready()
     environ = {"XLA_FLAGS": "--xla_cpu_enable_fast_math=false"}
-    if jax.__version_info__ >= (0, 11):
+    if jax.__version_info__ >= (0, 12):
         with pytest.warns(UserWarning, match="import jaxrt before the first JAX computation"):
             assert xla.add_process_flags(environ) == []
     else:
