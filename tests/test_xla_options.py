@@ -167,8 +167,8 @@ def test_import_keeps_xla_cpu_from_hoisting_a_large_while_into_one_function():
     `xla_cpu_small_while_loop_byte_threshold` as one LLVM function. On jax >= 0.12
     (whose default hoists both) importing jaxrt sets it to 1e6 in $XLA_FLAGS (merged with
     the flags there) before JAX reads them: a 1 KiB loop is still hoisted, a 2 MiB one is
-    not. The defaults of jax 0.10 and 0.11 hoist neither, and jaxrt leaves them be. A value the user set is kept: with 1e9 bytes
-    both are hoisted."""
+    not. The defaults of jax 0.10 and 0.11 hoist neither, and jaxrt leaves them be. A
+    value the user set is kept: with 1e9 bytes both are hoisted."""
     key = "xla_cpu_small_while_loop_byte_threshold"
     assert xla.PROCESS_OPTIONS == {key: "1000000"}
     new = jax.__version_info__ >= (0, 12)
