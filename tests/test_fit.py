@@ -56,10 +56,11 @@ def _sphere_scene(p):
 
 @pytest.mark.slow
 def test_fit_a_spheres_radius_and_centre_from_one_image():
-    """(The README's example, `test_the_readme_fitting_example_runs_and_recovers_the_sphere`,
-    runs the same fit at 32×32 in the quick suite.) From one 64×64 target, starting 20 % off (radius 1.2 for 1, the centre moved by
+    """From one 64×64 target, starting 20 % off (radius 1.2 for 1, the centre moved by
     20 % of the radius along every axis and scaled by 1.2), BFGS on the L2 loss with
-    the silhouette estimator recovers both to 1e-3 relative (in practice to ~1e-11)."""
+    the silhouette estimator recovers both to 1e-3 relative (in practice to ~1e-11).
+    Slow: the README's example (`test_the_readme_fitting_example_runs_and_recovers_the_sphere`)
+    runs the same fit at 32×32 in the quick suite."""
     camera = jr.PerspectiveCamera(eye=(0.0, 0.5, -5.0), target=(0.0, 0.0, 0.0), fov=35.0,
                                   width=N, height=N)
     settings = jr.RenderSettings(dtype="float64", silhouette=True, shadows="none",

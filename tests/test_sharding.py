@@ -34,7 +34,7 @@ SCRIPT = textwrap.dedent(
     one = jr.render(scene, camera, base)
     # 12 columns on 4 devices (even), 8 rows on 3 (uneven, padded); the jax and the fused
     # backends (the Pallas kernel, which computes each block's pixel centres from its
-    # offset, in float32 and interpret mode: on 3 devices, both splits uneven)
+    # offset, in float32 and interpret mode: on 3 devices, by columns and by rows)
     fields = ("rgb", "depth", "normal", "albedo", "steps", "coverage")
     for split, devices in (("columns", 4), ("rows", 3)):  # settings are the cache key
         img = jr.render(scene, camera, base.replace(devices=devices, split=split))
