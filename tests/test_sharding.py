@@ -13,6 +13,8 @@ import pytest
 
 SCRIPT = textwrap.dedent(
     """
+    import warnings
+    import equinox as eqx
     import jax
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
@@ -37,11 +39,27 @@ SCRIPT = textwrap.dedent(
     # offset, in float32 and interpret mode: on 3 devices, by columns and by rows)
     fields = ("rgb", "depth", "normal", "albedo", "steps", "coverage")
     for split, devices in (("columns", 4), ("rows", 3)):  # settings are the cache key
-        img = jr.render(scene, camera, base.replace(devices=devices, split=split))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            img = jr.render(scene, camera, base.replace(devices=devices, split=split))
+        # "auto" runs the fused lanes under shard_map too (their rule for `reshard`)
+        assert not [w for w in caught if "rendering with backend" in str(w.message)], \
+            [str(w.message) for w in caught]
         for field in fields:
             a, b = np.asarray(getattr(img, field)), np.asarray(getattr(one, field))
             assert np.allclose(a, b, rtol=1e-12, atol=1e-12), (split, devices, field,
                                                                np.abs(a - b).max())
+    # a ray tree in one scan (recursion = "scan": its slot buffer is where JAX inserts a
+    # `reshard` under shard_map), on 2 devices, on the fused lanes too
+    mirror = eqx.tree_at(lambda s: s.materials, scene, [jr.bsdf.Mirror(), scene.materials[1]])
+    tree = base.replace(max_depth=1, recursion="scan")
+    want = jr.render(mirror, camera, tree)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = jr.render(mirror, camera, tree.replace(devices=2))
+    assert not [w for w in caught if "rendering with backend" in str(w.message)], \
+        [str(w.message) for w in caught]
+    assert np.allclose(got.rgb, want.rgb, rtol=1e-12, atol=1e-12), np.abs(got.rgb - want.rgb).max()
     f32 = base.replace(dtype="float32", backend="pallas", batch_size=16)
     want = jr.render(scene, camera, f32)
     for split in ("columns", "rows"):

@@ -45,9 +45,12 @@ ELEMENTWISE = {
     "rem", "rsqrt", "select_n", "shift_left", "shift_right_arithmetic",
     "shift_right_logical", "sign", "sin", "sinh", "sqrt", "square", "stop_gradient",
     "sub", "tan", "tanh", "xor", "optimization_barrier_elem",
+    "reshard", "sharding_constraint", "mesh_cast",
 }
-#: Elementwise primitives that return their operand.
-IDENTITY = {"stop_gradient", "copy", "copy_p"}
+#: Elementwise primitives that return their operand (the last three change only where the
+#: value lives: JAX inserts `reshard` in programs traced under `shard_map`, as for a
+#: render on several devices, `RenderSettings.devices`).
+IDENTITY = {"stop_gradient", "copy", "copy_p", "reshard", "sharding_constraint", "mesh_cast"}
 
 #: Primitives whose inner jaxpr is inlined (`control._call`).
 CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint", "custom_jvp_call",
