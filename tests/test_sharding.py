@@ -38,13 +38,17 @@ SCRIPT = textwrap.dedent(
     # backends (the Pallas kernel, which computes each block's pixel centres from its
     # offset, in float32 and interpret mode: on 3 devices, by columns and by rows)
     fields = ("rgb", "depth", "normal", "albedo", "steps", "coverage")
-    for split, devices in (("columns", 4), ("rows", 3)):  # settings are the cache key
+
+    def on_lanes(scene, settings):  # the render, where "auto" must not fall back to "jax"
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            img = jr.render(scene, camera, base.replace(devices=devices, split=split))
-        # "auto" runs the fused lanes under shard_map too (their rule for `reshard`)
-        assert not [w for w in caught if "rendering with backend" in str(w.message)], \
-            [str(w.message) for w in caught]
+            img = jr.render(scene, camera, settings)
+        fell_back = [str(w.message) for w in caught if "rendering with backend" in str(w.message)]
+        assert not fell_back, fell_back
+        return img
+
+    for split, devices in (("columns", 4), ("rows", 3)):  # settings are the cache key
+        img = on_lanes(scene, base.replace(devices=devices, split=split))
         for field in fields:
             a, b = np.asarray(getattr(img, field)), np.asarray(getattr(one, field))
             assert np.allclose(a, b, rtol=1e-12, atol=1e-12), (split, devices, field,
@@ -54,11 +58,7 @@ SCRIPT = textwrap.dedent(
     mirror = eqx.tree_at(lambda s: s.materials, scene, [jr.bsdf.Mirror(), scene.materials[1]])
     tree = base.replace(max_depth=1, recursion="scan")
     want = jr.render(mirror, camera, tree)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        got = jr.render(mirror, camera, tree.replace(devices=2))
-    assert not [w for w in caught if "rendering with backend" in str(w.message)], \
-        [str(w.message) for w in caught]
+    got = on_lanes(mirror, tree.replace(devices=2))
     assert np.allclose(got.rgb, want.rgb, rtol=1e-12, atol=1e-12), np.abs(got.rgb - want.rgb).max()
     f32 = base.replace(dtype="float32", backend="pallas", batch_size=16)
     want = jr.render(scene, camera, f32)
