@@ -90,6 +90,21 @@ def add_process_flags(environ=None):
     return list(missing)
 
 
+def add_host_devices(count, environ=None):
+    """Ask XLA for `count` CPU devices (`--xla_force_host_platform_device_count`), so that
+    `RenderSettings(devices=count)` can shard a render over as many CPU cores
+    (`jaxrt.sharding`; XLA:CPU runs one render program on about one core). Only before
+    JAX starts its backend, and only if `$XLA_FLAGS` does not name a count already;
+    returns whether the flag was added. `jaxrt render` calls it for its own process; in
+    a program of your own, set the flag before the first JAX computation."""
+    environ = os.environ if environ is None else environ
+    flags = environ.get("XLA_FLAGS", "")
+    if count <= 1 or "xla_force_host_platform_device_count" in flags or _backend_started():
+        return False
+    environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
+    return True
+
+
 def _backend_started():
     """Whether JAX has started a backend (and so read `$XLA_FLAGS`). `xla_bridge` is
     internal: without it, assume it has (nothing is changed then)."""

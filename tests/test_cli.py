@@ -84,6 +84,43 @@ def test_python_m_jaxrt_and_version():
     assert out.returncode == 0 and out.stdout.strip() == f"jaxrt {jaxrt.__version__}"
 
 
+def test_devices_on_a_cpu_get_as_many_xla_devices(tmp_path):
+    """`--set devices=2` makes two XLA CPU devices before JAX starts (a fresh process:
+    this one's backend has started) and shards the image over them: the same image as
+    on one device, where before it stopped with "only 1 local devices"."""
+    import os
+    import subprocess
+    import sys
+
+    config = tmp_path / "ball.toml"
+    config.write_text(SCENE)
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env.update(JAX_PLATFORMS="cpu", JAXRT_NO_CACHE="1")
+    for devices in (1, 2):
+        out = subprocess.run([sys.executable, "-m", "jaxrt", "render", str(config), "-o",
+                              str(tmp_path / f"d{devices}"), "--width", "16", "--height", "8",
+                              "--set", f"devices={devices}"],
+                             capture_output=True, text=True, timeout=600, env=env)
+        assert out.returncode == 0, out.stderr[-2000:]
+    a, b = (io.read_exr(tmp_path / f"d{d}.exr")["rgb"] for d in (1, 2))
+    np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_add_host_devices_only_before_jax_starts_and_keeps_a_users_count(monkeypatch):
+    from jaxrt import xla
+
+    monkeypatch.setattr(xla, "_backend_started", lambda: False)
+    env = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=false"}
+    assert xla.add_host_devices(3, env)
+    assert env["XLA_FLAGS"] == ("--xla_cpu_use_fusion_emitters=false "
+                                "--xla_force_host_platform_device_count=3")
+    assert not xla.add_host_devices(2, env) and env["XLA_FLAGS"].endswith("count=3")
+    assert not xla.add_host_devices(1, {})
+    monkeypatch.setattr(xla, "_backend_started", lambda: True)
+    env = {}
+    assert not xla.add_host_devices(2, env) and env == {}
+
+
 def test_set_overrides_any_setting_and_compile_lines(tmp_path, capsys):
     config = tmp_path / "ball.toml"
     config.write_text(SCENE)
