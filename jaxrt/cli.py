@@ -240,7 +240,8 @@ def _host_devices(devices):
 
     from . import xla
 
-    if isinstance(devices, int) and not isinstance(devices, bool) and devices != 1:
+    wanted = isinstance(devices, int) and not isinstance(devices, bool)
+    if wanted and (devices == 0 or devices > 1):
         cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
                  else os.cpu_count() or 1)
         xla.add_host_devices(devices if devices > 1 else cores)
