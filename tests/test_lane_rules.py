@@ -357,3 +357,63 @@ def test_a_barrier_materialises_its_values_once():
         return primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
 
     assert "reduce_or" in lowered(True) and "reduce_or" not in lowered(False)
+
+
+def _divergent(p, a, b):
+    """A march whose trip count varies between rays from 0 to 100 (ceil(50 |a|)); its
+    body reads a per-ray value (b), shared ones (p), and the stacked output of a scan
+    before the loop (ys: on "fused" the rows of one [3, *block] array)."""
+    _, ys = lax.scan(lambda c, r: (c, r * a + b), 0.0, p[:3])
+
+    def body(s):
+        k, x = s
+        y = lax.scan(lambda c, r: (c * p[1] + r, None), x, ys)[0]
+        return k + 1.0, jnp.sin(y) + b
+
+    return lax.while_loop(lambda s: s[0] < jnp.abs(a) * 50.0, body, (jnp.zeros_like(a), a))
+
+
+def _counted(p, a, b):
+    """A loop of a static count (`march.search.repeat`): the same trip count for all rays."""
+    return lax.while_loop(lambda s: s[0] < 5, lambda s: (s[0] + 1, s[1] * p[1] + b),
+                          (0, a))[1]
+
+
+def _whiles(jaxpr):
+    return sum(e.primitive.name == "while" for e in jaxpr.eqns) + sum(
+        _whiles(sub.jaxpr if isinstance(sub, ClosedJaxpr) else sub)
+        for e in jaxpr.eqns for p in e.params.values()
+        for sub in (p if isinstance(p, (list, tuple)) else [p])
+        if isinstance(sub, (ClosedJaxpr, Jaxpr)))
+
+
+@pytest.mark.parametrize("compact", [1, 4, 8])
+def test_a_narrowed_loop_gives_every_ray_its_own_result(compact):
+    """`KernelOptions.compaction`: a loop over a 16×16 block whose rays stop after 0 to
+    100 steps runs on the whole block until at most 1/compact of its rays are active,
+    then on those alone (`control._compacted`). Every ray ends where it ends alone (vmap),
+    to the bit, rays that never enter the loop included; a loop of a static count
+    never narrows."""
+    block = (16, 16)
+    rng = np.random.default_rng(5)
+    params = rng.normal(size=12)
+    a = rng.uniform(-2, 2, block)
+    a[0, :5] = 0.0  # rays that never enter the loop
+    b = rng.uniform(-1, 1, block)
+    for fn, narrows in ((_divergent, compact > 1), (_counted, False)):
+        closed = jax.make_jaxpr(fn)(params, a[0, 0], b[0, 0])
+
+        def lanes(params, a, b):
+            outs = eval_lanes(closed, [lanes_of(params, lazy=True), _lane(a), _lane(b)], block,
+                              roll_scans=True, compact=compact)
+            return [stack_lanes(o, block, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
+
+        got = jax.jit(lanes)(params, a, b)
+        want = jax.vmap(jax.vmap(fn, in_axes=(None, 0, 0)), in_axes=(None, 0, 0))(
+            jnp.asarray(params), a, b)
+        for g, w in zip(got, jax.tree_util.tree_leaves(want), strict=True):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+        program = jax.make_jaxpr(lanes)(params, a, b).jaxpr
+        assert _whiles(program) == _whiles(closed.jaxpr) + narrows
+    trips = np.ceil(np.abs(a) * 50)
+    assert trips.min() == 0 and trips.max() > 90 and (trips > 50).mean() < 0.5

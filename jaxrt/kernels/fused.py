@@ -223,7 +223,8 @@ def _tiles(traced, dyn, samples, settings, grid):
         args = [lanes_of(leaf, lazy=True) for leaf in leaves]
         args += [_lane(sb[..., 0]), _lane(sb[..., 1])]
         outs = eval_lanes(closed, args, tile, unroll=settings.kernel.unroll,
-                          materialize=settings.kernel.materialize, roll_scans=True, keep_rows=True)
+                          materialize=settings.kernel.materialize, roll_scans=True, keep_rows=True,
+                          compact=settings.kernel.compaction)
         return [stack_lanes(o, tile, sh.dtype) for o, sh in zip(outs, out_leaves)]
 
     if ty * tx == 1:

@@ -176,10 +176,15 @@ def march(sdf, origin, wi, t_max, options):
             new["f2"] = jnp.where(second, f, jnp.where(golden, jnp.where(left, s["f1"], f), s["f2"]))
 
         # The next phase: the march while it lasts, then END for a ray out of budget
-        # (the march stopped before the light, not yet dark), then the refinement.
+        # (the march stopped before the light, not yet dark), then the refinement of a
+        # minimum that it can change: none where no sample lowered the penumbra below 1
+        # (t_best = 0: most shadow rays) or the ray was blocked (visibility 0); after
+        # the loop those keep their sample alone.
         after_march = dict(new)
         out_of_budget = (after_march["t"] < t_max) & (after_march["vis"] > MIN_VISIBILITY)
-        finished = FIRST if refine else done_phase
+        finished = done_phase
+        if refine:
+            finished = jnp.where((new["t_best"] > 0.0) & (new["vis"] > 0.0), FIRST, done_phase)
         from_march = jnp.where(marching(after_march), MARCH, jnp.where(out_of_budget, END, finished))
         new["phase"] = jnp.where((phase == SIGN) | (phase == MARCH), from_march,
                                  jnp.where(phase == END, finished, phase + 1)).astype(jnp.int32)

@@ -237,7 +237,7 @@ def _bodies(eqn, flags):
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
                fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None,
-               bool_carries=False, roll_scans=False, keep_rows=False):
+               bool_carries=False, roll_scans=False, keep_rows=False, compact=1):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -264,6 +264,9 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
       roll_scans: scans stay loops (`_scan_rolled`: one copy of the body), else they
         are unrolled.
       keep_rows: the outputs may hold `Row` lanes (for `stack_lanes`).
+      compact: a loop whose condition varies between rays narrows to its active rays
+        once at most 1/compact of the block is active (`control._compacted`; XLA only);
+        1: it runs on the whole block to the end.
 
     Returns: one object array of lanes per output of the program.
     """
@@ -274,6 +277,7 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     ctx.uniforms = uniforms
     ctx.bool_carries = bool_carries
     ctx.roll_scans = roll_scans
+    ctx.compact = int(compact)
     ctx.rewrite = rewrite if (fast_math or ptx) else None
     ctx.eval_closed = functools.partial(_eval_closed, ctx=ctx)
     ctx.rows = any(isinstance(x, Row) for a in args for x in a.reshape(-1))

@@ -189,6 +189,9 @@ class _Ctx:
         self.unroll = unroll
         self.materialize = materialize
         self.loop_depth = 0
+        self.compact = 1  # a loop narrows to 1/compact of its block (`control._compacted`)
+        self.compact_min = 32  # ... if that is at least this many lanes
+        self.compacting = False  # inside a narrowed loop (no nested narrowing)
         self.roll_scans = False
         self.rows = False  # whether a rolled scan has made `Row` lanes
         self.param_pos = {}  # id of a 0-d parameter lane -> (dtype, position in its table)
