@@ -41,6 +41,14 @@ class SDF(eqx.Module):
         """Direct child nodes (static structure)."""
         return ()
 
+    def bounding_ball(self):
+        """(centre [3], radius, weight) with f(p) ≥ weight · (|p − centre| − radius)
+        wherever |p − centre| ≥ radius (0 < weight ≤ 1), or None (unknown, or
+        unbounded). For an exact distance (and any bound that is exact outside) it is a
+        ball that holds the shape, weight 1. A union skips a child whose ball shows it
+        cannot be the nearest (`jaxrt.sdf.stack.culled_eval`)."""
+        return None
+
 
 class Primitive(SDF):
     """A shape at the origin carrying a (static) material index."""

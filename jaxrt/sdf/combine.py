@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from ..vecmath import maximum as _max, minimum as _min, safe_div, select
 from .base import SDF, check_sdf, non_negative
-from .stack import STACK_THRESHOLD, union_eval, union_lipschitz
+from .stack import STACK_THRESHOLD, enclosing_ball, union_eval, union_lipschitz
 
 
 def op_union(d1, d2):
@@ -110,6 +110,9 @@ class Union(SDF):
     def eval(self, p):
         return union_eval(self.children_, p, self.stack_threshold)
 
+    def bounding_ball(self):
+        return enclosing_ball([c.bounding_ball() for c in self.children_])
+
     def lipschitz(self):
         return union_lipschitz(self.children_, self.stack_threshold)
 
@@ -138,6 +141,10 @@ class Intersection(SDF):
     def lipschitz(self):
         return jnp.max(jnp.stack([c.lipschitz() for c in self.children_]))
 
+    def bounding_ball(self):
+        # max_i f_i ≥ f_j: any child's ball
+        return next((b for b in (c.bounding_ball() for c in self.children_) if b is not None), None)
+
 
 class Subtraction(SDF):
     """`a` with `b` removed: max(a, −b) (a bound). The cut takes `b`'s material."""
@@ -160,6 +167,9 @@ class Subtraction(SDF):
     def lipschitz(self):
         return jnp.maximum(self.a.lipschitz(), self.b.lipschitz())
 
+    def bounding_ball(self):
+        return self.a.bounding_ball()  # max(a, −b) ≥ a
+
 
 class _Smooth(SDF):
     a: SDF
@@ -177,6 +187,10 @@ class _Smooth(SDF):
     def lipschitz(self):
         return jnp.maximum(self.a.lipschitz(), self.b.lipschitz())
 
+    def bounding_ball(self):
+        # smooth subtraction and intersection: max(a, ·) + h²k/4 ≥ a
+        return self.a.bounding_ball()
+
 
 class SmoothUnion(_Smooth):
     """Union blended over width `k` (polynomial smooth minimum; a bound).
@@ -188,6 +202,11 @@ class SmoothUnion(_Smooth):
         da, ma = self.a.eval(p)
         db, mb = self.b.eval(p)
         return op_smooth_union(da, db, self.k), select(db < da, mb, ma)
+
+    def bounding_ball(self):
+        # smin(a, b) ≥ min(a, b) − k/4
+        ball = enclosing_ball([self.a.bounding_ball(), self.b.bounding_ball()])
+        return None if ball is None else (ball[0], ball[1] + 0.25 * self.k / ball[2], ball[2])
 
 
 class SmoothSubtraction(_Smooth):

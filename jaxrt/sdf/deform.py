@@ -34,6 +34,15 @@ def _bend_lipschitz(rate, radius):
     return 1.0 + jnp.abs(rate) * radius
 
 
+def _about_origin(ball):
+    """The ball of a child evaluated at a rotation q of p (|q| = |p|; twist, bend):
+    |q − c| ≥ |p| − |c|, so a ball about the origin of radius |c| + r."""
+    if ball is None:
+        return None
+    c, r, w = ball
+    return jnp.zeros_like(c), jnp.sqrt(jnp.sum(c * c)) + r, w
+
+
 class SineDisplacement(eqx.Module):
     """sin(ω x) sin(ω y) sin(ω z): the notes' example displacement; Lipschitz |ω|.
 
@@ -92,6 +101,14 @@ class Displace(SDF):
         d, m = self.child.eval(p)
         return d + self.amplitude * self.displacement(p), m
 
+    def bounding_ball(self):
+        # |g| ≤ 1 for the sine displacement: f ≥ w (|p − c| − r) − |a|
+        ball = self.child.bounding_ball()
+        if ball is None or not isinstance(self.displacement, SineDisplacement):
+            return None
+        c, r, w = ball
+        return c, r + jnp.abs(self.amplitude) / w, w
+
     def lipschitz(self):
         if self.displacement_lipschitz is None:
             lg = self.displacement.lipschitz()
@@ -127,6 +144,9 @@ class Twist(SDF):
         c, s = jnp.cos(a), jnp.sin(a)
         return self.child.eval(jnp.concatenate([c * x - s * z, y, s * x + c * z], axis=-1))
 
+    def bounding_ball(self):
+        return _about_origin(self.child.bounding_ball())
+
     def lipschitz(self):
         return self.child.lipschitz() * _twist_lipschitz(self.rate, self.radius)
 
@@ -156,6 +176,9 @@ class Bend(SDF):
         a = self.rate * x
         c, s = jnp.cos(a), jnp.sin(a)
         return self.child.eval(jnp.concatenate([c * x - s * y, s * x + c * y, z], axis=-1))
+
+    def bounding_ball(self):
+        return _about_origin(self.child.bounding_ball())
 
     def lipschitz(self):
         return self.child.lipschitz() * _bend_lipschitz(self.rate, self.radius)

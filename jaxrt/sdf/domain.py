@@ -56,6 +56,11 @@ def quaternion_to_axis_angle(q):
     return v / s, float(np.degrees(2.0 * np.arctan2(s, q[0])))
 
 
+def _moved(ball, move):
+    """`ball` with its centre moved by `move` (a rigid motion: radius and weight kept)."""
+    return None if ball is None else (move(ball[0]), ball[1], ball[2])
+
+
 class _Wrap(SDF):
     def children(self):
         return (self.child,)
@@ -76,6 +81,9 @@ class Translate(_Wrap):
 
     def eval(self, p):
         return self.child.eval(p - self.offset)
+
+    def bounding_ball(self):
+        return _moved(self.child.bounding_ball(), lambda c: c + self.offset)
 
 
 class Rotate(_Wrap):
@@ -105,6 +113,11 @@ class Rotate(_Wrap):
         rotation = axis_angle_matrix(normalize(self.axis), jnp.deg2rad(self.angle))
         return self.child.eval(p @ rotation)
 
+    def bounding_ball(self):
+        # q = Mᵀ p: |q − c| = |p − M c|
+        rotation = axis_angle_matrix(normalize(self.axis), jnp.deg2rad(self.angle))
+        return _moved(self.child.bounding_ball(), lambda c: rotation @ c)
+
 
 class Transform(_Wrap):
     """The child moved by a rigid transform p ↦ R p + t: f(Rᵀ (p − t)).
@@ -129,6 +142,9 @@ class Transform(_Wrap):
     def eval(self, p):
         return self.child.eval(self.rotation.T @ (p - self.translation))
 
+    def bounding_ball(self):
+        return _moved(self.child.bounding_ball(), lambda c: self.rotation @ c + self.translation)
+
 
 class Scale(_Wrap):
     """The child scaled uniformly by `factor` > 0: s·f(p / s) (exact stays exact)."""
@@ -143,6 +159,11 @@ class Scale(_Wrap):
     def eval(self, p):
         d, m = self.child.eval(safe_div(p, self.factor))
         return d * self.factor, m
+
+    def bounding_ball(self):
+        # s f(p/s) ≥ s w (|p/s − c| − r) = w (|p − s c| − s r)
+        ball = self.child.bounding_ball()
+        return None if ball is None else (ball[0] * self.factor, ball[1] * self.factor, ball[2])
 
 
 class Repeat(_Wrap):
@@ -175,3 +196,12 @@ class Repeat(_Wrap):
             cell = clip(cell, -c, c)
         q = select(active, p - self.period * cell, p)
         return self.child.eval(q)
+
+    def bounding_ball(self):
+        # f(p) = f_child(p − period·k) for one copy k ∈ [−count, count]: every copy's
+        # ball lies within |period · count| of the child's
+        ball = self.child.bounding_ball()
+        if ball is None or self.count is None:
+            return None
+        reach = jnp.sqrt(jnp.sum((self.period * jnp.asarray(self.count, self.period.dtype)) ** 2))
+        return ball[0], ball[1] + reach, ball[2]

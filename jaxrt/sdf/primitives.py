@@ -24,6 +24,13 @@ from .base import Primitive, as_float, check, material_index, non_negative, posi
 # -- plain distance functions (point first, then the shape's parameters) -------------
 
 
+def _ball(radius, like, weight=None):
+    """A `bounding_ball` centred at the origin (in the dtype of the leaf `like`)."""
+    dtype = jnp.result_type(like)
+    weight = jnp.ones((), dtype) if weight is None else weight
+    return jnp.zeros(3, dtype), radius, weight
+
+
 def sd_sphere(p, radius):
     """Exact: |p| − r."""
     return safe_norm(p) - radius
@@ -195,6 +202,9 @@ class Sphere(Primitive):
     def distance(self, p):
         return sd_sphere(p, self.radius)
 
+    def bounding_ball(self):
+        return _ball(self.radius, self.radius)
+
 
 class Plane(Primitive):
     """The plane n·p = offset, solid on the side opposite to `normal` (exact).
@@ -228,6 +238,9 @@ class Box(Primitive):
     def distance(self, p):
         return sd_box(p, self.half_extents)
 
+    def bounding_ball(self):
+        return _ball(safe_norm(self.half_extents), self.half_extents)
+
 
 class RoundBox(Primitive):
     """Box with edges rounded by `radius`, outer size `half_extents` (exact)."""
@@ -247,6 +260,9 @@ class RoundBox(Primitive):
     def distance(self, p):
         return sd_round_box(p, self.half_extents, self.radius)
 
+    def bounding_ball(self):
+        return _ball(safe_norm(self.half_extents), self.half_extents)
+
 
 class Torus(Primitive):
     """Torus in the xz plane around the y axis (exact)."""
@@ -261,6 +277,9 @@ class Torus(Primitive):
 
     def distance(self, p):
         return sd_torus(p, self.major_radius, self.minor_radius)
+
+    def bounding_ball(self):
+        return _ball(self.major_radius + self.minor_radius, self.major_radius)
 
 
 class Cone(Primitive):
@@ -277,6 +296,10 @@ class Cone(Primitive):
     def distance(self, p):
         return sd_cone(p, self.radius, self.height)
 
+    def bounding_ball(self):
+        # base rim at distance R from the origin, apex at distance h
+        return _ball(jnp.maximum(self.radius, self.height), self.radius)
+
 
 class Capsule(Primitive):
     """Capsule: segment y ∈ [−half_height, half_height] dilated by `radius` (exact)."""
@@ -291,6 +314,9 @@ class Capsule(Primitive):
 
     def distance(self, p):
         return sd_capsule(p, self.half_height, self.radius)
+
+    def bounding_ball(self):
+        return _ball(self.half_height + self.radius, self.radius)
 
 
 class Cylinder(Primitive):
@@ -307,6 +333,9 @@ class Cylinder(Primitive):
     def distance(self, p):
         return sd_cylinder(p, self.radius, self.half_height)
 
+    def bounding_ball(self):
+        return _ball(jnp.sqrt(self.radius ** 2 + self.half_height ** 2), self.radius)
+
 
 class Ellipsoid(Primitive):
     """Axis-aligned ellipsoid with semi-axes `radii` (a bound, exact on the surface)."""
@@ -319,3 +348,9 @@ class Ellipsoid(Primitive):
 
     def distance(self, p):
         return sd_ellipsoid(p, self.radii)
+
+    def bounding_ball(self):
+        # Outside the ball of radius r_max (where k0 ≥ 1), with k0 ≥ |p|/r_max and
+        # k1 ≤ |p|/r_min²: f = k0 (k0 − 1)/k1 ≥ (r_min/r_max)² (|p| − r_max).
+        r_max, r_min = jnp.max(self.radii), jnp.min(self.radii)
+        return _ball(r_max, self.radii, (r_min / r_max) ** 2)

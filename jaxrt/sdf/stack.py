@@ -38,7 +38,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..vecmath import select
+from ..vecmath import safe_norm, select
 
 from .base import SDF, Primitive
 
@@ -64,6 +64,9 @@ class _Tagged(SDF):
 
     def lipschitz(self):
         return self.child.lipschitz()
+
+    def bounding_ball(self):
+        return self.child.bounding_ball()
 
 
 def _untag(prim):
@@ -104,11 +107,13 @@ def stack_nodes(members):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *members)
 
 
-def stacked_eval(stacked, p, ids=None):
+def stacked_eval(stacked, p, ids=None, d_before=None):
     """(d_{j*}, m_{j*}, ids[j*]) over the n stacked children (ids: their indices in the
     union, default 0..n−1): a `lax.scan` over the children with the loop's select,
     (d, m, i) ← (d_k, m_k, ids[k]) where k = 0 or d_k < d, so the program holds one copy
-    of the child (see the module docstring)."""
+    of the child (see the module docstring). With `d_before` (the union's distance
+    before the group), a child that cannot come nearer than min(d_before, d) is
+    skipped (`culled_eval`)."""
     n = jax.tree_util.tree_leaves(stacked)[0].shape[0]
     ids = jnp.arange(n, dtype=jnp.int32) if ids is None else jnp.asarray(ids, jnp.int32)
     first = jax.tree_util.tree_map(lambda x: x[0], stacked)
@@ -118,7 +123,10 @@ def stacked_eval(stacked, p, ids=None):
     def step(carry, xs):
         d, m, j = carry
         child, k, i = xs
-        dc, mc = child.eval(p)
+        if d_before is None:
+            dc, mc = child.eval(p)
+        else:
+            dc, mc = culled_eval(child, p, jnp.where(k == 0, d_before, jnp.minimum(d, d_before)))
         take = (k == 0) | (dc < d)
         return (select(take, dc, d), select(take, mc, m), select(take, i, j)), None
 
@@ -160,7 +168,11 @@ def parts_eval(parts, ids, stacked, p):
     in the loop."""
     best = None
     for part, ix, st in zip(parts, ids, stacked):
-        dc, mc, ic = stacked_eval(part, p, ix) if st else (*part.eval(p), jnp.int32(ix[0]))
+        if st:
+            dc, mc, ic = stacked_eval(part, p, ix, None if best is None else best[0])
+        else:
+            dc, mc = part.eval(p) if best is None else culled_eval(part, p, best[0])
+            ic = jnp.int32(ix[0])
         if best is None:
             best = (dc, mc, ic)
             continue
@@ -177,6 +189,85 @@ def parts_lipschitz(parts, stacked):
     return jnp.max(jnp.stack(values))
 
 
+#: A union skips only children of at least this many equations (`culled_eval`): a
+#: sphere's distance (6) costs no more than the test.
+CULL_MIN_EQUATIONS = 12
+
+#: Relative margin of the skip test, so that rounding never skips a child that is an
+#: ulp nearer than its bound says: a child is skipped only where its bound exceeds the
+#: distance so far by 1e-5 of |p − centre| + radius.
+CULL_MARGIN = 1e-5
+
+_EQUATIONS = {}
+
+
+def enclosing_ball(balls):
+    """A `bounding_ball` of the union of shapes with these balls (None if any is None):
+    centred at the mean centre, the smallest weight (min_i w_i (|p − c_i| − r_i) ≥
+    w (|p − C| − R) outside the big ball)."""
+    if not balls or any(b is None for b in balls):
+        return None
+    centre = sum(b[0] for b in balls) / len(balls)
+    radius = jnp.max(jnp.stack([safe_norm(b[0] - centre) + b[1] for b in balls]))
+    weight = jnp.min(jnp.stack([jnp.asarray(b[2]) for b in balls]))
+    return centre, radius, weight
+
+
+def _equations(jaxpr):
+    n = len(jaxpr.eqns)
+    for eqn in jaxpr.eqns:
+        for v in eqn.params.values():
+            for sub in v if isinstance(v, (list, tuple)) else [v]:
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    n += _equations(inner)
+    return n
+
+
+def _costly(child, p):
+    """Whether `child.eval` is worth skipping: at least CULL_MIN_EQUATIONS equations
+    (counted once per structure)."""
+    key = (jax.tree_util.tree_structure(child), p.shape, p.dtype)
+    if key not in _EQUATIONS:
+        closed = jax.make_jaxpr(lambda c, x: c.eval(x))(child, p)
+        _EQUATIONS[key] = _equations(closed.jaxpr)
+    return _EQUATIONS[key] >= CULL_MIN_EQUATIONS
+
+
+def culled_eval(child, p, d):
+    """`child.eval(p)`, or where the child's `bounding_ball` shows that it cannot come
+    nearer than d (the union's distance so far) at any point of p: (its bound, material
+    0), which a union's `dc < d` then never takes. The same union either way (exact,
+    ties included: a skipped child has f ≥ bound > d).
+
+    Only in programs traced for the "fused" lanes (`march.tape.skips_blocks`), where a
+    `cond` with a per-ray predicate skips its branch for a tile of rays none of which
+    needs it (`lanes.control._cond_skipping`): the rays of a tile march through the
+    same region, so a tile evaluates only the children near it. Elsewhere (vmap, the
+    Pallas kernel) a cond evaluates both branches, so nothing is skipped."""
+    from ..march import tape
+
+    ball = child.bounding_ball() if tape.skips_blocks() else None
+    if ball is None or not _costly(child, p):
+        return child.eval(p)
+    centre, radius, weight = ball
+    gap = safe_norm(p - centre.astype(p.dtype))
+    bound = (weight * (gap - radius) - CULL_MARGIN * (gap + radius)).astype(d.dtype)
+    need = jnp.any(~((bound > 0.0) & (bound > d)))
+    m_shape = jax.eval_shape(lambda x: child.eval(x)[1], p)
+
+    def near():
+        # the material passes the cond as a float (exact for indices < 2²⁴): an integer
+        # output of a cond gets a float0 tangent under JVP, built by a primitive that
+        # the lane kernels do not run
+        dc, mc = child.eval(p)
+        return dc, mc.astype(d.dtype)
+
+    far = (jnp.broadcast_to(bound, jnp.shape(d)), jnp.zeros(m_shape.shape, d.dtype))
+    dc, mc = jax.lax.cond(need, near, lambda: far)
+    return dc, mc.astype(m_shape.dtype)
+
+
 def union_eval(children, p, threshold=None):
     """(min_i f_i(p), material of the first minimising child), as the loop
     `d = where(d_i < d, d_i, d)` over i = 1..n, with groups of ≥ `threshold` children
@@ -185,7 +276,7 @@ def union_eval(children, p, threshold=None):
     if split is None:
         d, m = children[0].eval(p)
         for child in children[1:]:
-            dc, mc = child.eval(p)
+            dc, mc = culled_eval(child, p, d)
             take = dc < d
             m = select(take, mc, m)
             d = select(take, dc, d)

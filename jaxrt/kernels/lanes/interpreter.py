@@ -12,10 +12,10 @@ from .control import _call, _cond, _scan, _while
 from .elementwise import _elementwise, _round
 from .gpu import _SUBSTITUTES, _fma, _fma_plan, _substitute, rewrite
 from .indexing import _dynamic_slice, _dynamic_update_slice, _gather, _scatter
-from .jax_internals import (CALLS, ELEMENTWISE, IDENTITY, ClosedJaxpr, Jaxpr, _scan_counts,
+from .jax_internals import (CALLS, ELEMENTWISE, EMPTY, IDENTITY, ClosedJaxpr, Jaxpr, _scan_counts,
                             is_dropvar, is_literal, while_parts)
 from .structural import (_arg_reduce, _broadcast_in_dim, _concatenate, _dot_general,
-                         _expand_dims, _iota, _optimization_barrier, _pad, _reduce, _reshape,
+                         _empty, _expand_dims, _iota, _optimization_barrier, _pad, _reduce, _reshape,
                          _rev, _slice, _split, _squeeze, _stack, _transpose, _unstack)
 from .values import (Row, _Ctx, _any_lane_default, _is_const, _lane_shape, _shape, lanes_of,
                      resolve, row_array, Unsupported)
@@ -56,6 +56,7 @@ _RULES = {
     "optimization_barrier": _optimization_barrier,
     "round": _round,
     **{name: _call for name in CALLS},
+    **{name: _empty for name in EMPTY},
 }
 
 

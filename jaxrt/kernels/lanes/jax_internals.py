@@ -52,6 +52,10 @@ ELEMENTWISE = {
 #: render on several devices, `RenderSettings.devices`).
 IDENTITY = {"stop_gradient", "copy", "copy_p", "reshard", "sharding_constraint", "mesh_cast"}
 
+#: Primitives of an uninitialised value (a cond's partial evaluation fills the residuals
+#: of a branch that has none with them): lanes make it zeros (`structural._empty`).
+EMPTY = ("empty2", "empty")
+
 #: Primitives whose inner jaxpr is inlined (`control._call`).
 CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint", "custom_jvp_call",
          "custom_vjp_call", "custom_vjp_call_jaxpr")

@@ -85,6 +85,12 @@ def _pad(eqn, ins, ctx):
     return [out]
 
 
+def _empty(eqn, ins, ctx):
+    """An uninitialised value (`jax_internals.EMPTY`): zeros, constants."""
+    aval = eqn.outvars[0].aval
+    return [lanes_of(np.zeros(aval.shape, aval.dtype))]
+
+
 def _iota(eqn, ins, ctx):
     p = eqn.params
     shape, dim = tuple(p["shape"]), p["dimension"]
