@@ -52,7 +52,7 @@ def render(scene, camera, settings=None):
 
 @eqx.filter_jit
 def _render(scene, camera, settings):
-    scene = _prestacked(scene)
+    scene = _prestacked(scene, settings)
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
     h, w, spp = camera.height, camera.width, settings.spp
 
@@ -271,7 +271,7 @@ def replay_image(scene, camera, settings=None):
 
 @eqx.filter_jit
 def _replay_image(scene, camera, settings):
-    scene = _prestacked(scene)
+    scene = _prestacked(scene, settings)
     samples = pixel_samples(camera, settings.spp, settings.seed).astype(camera.eye.dtype)
     kernel = _sample_kernel(settings)
     grid = (camera.height, camera.width * settings.spp)
@@ -299,11 +299,14 @@ def _fused(scene, camera, samples, settings, kernel, grid, offset):
                        centres=offset if settings.spp == 1 else None)
 
 
-def _prestacked(scene):
+def _prestacked(scene, settings):
     """The scene with the stacked groups of its unions stacked once, here, at the top of
     the program (`sdf.stack.prestack`): the rest of the program sees one leaf per leaf
-    of a group's structure, not one per child."""
-    return eqx.tree_at(lambda s: s.surface, scene, prestack(scene.surface))
+    of a group's structure, not one per child. For the "fused" lanes, whose unions skip
+    far children, the children's bounding balls are computed here too (once, not at
+    every site that evaluates the SDF)."""
+    balls = resolve_backend(settings.backend) == "fused"
+    return eqx.tree_at(lambda s: s.surface, scene, prestack(scene.surface, balls=balls))
 
 
 def _dtype(settings):

@@ -87,11 +87,13 @@ def test_a_union_that_skips_far_children_is_the_same_function():
     boxes = sdf.Union(sdf.Plane(), *[sdf.Translate(sdf.Rotate(sdf.Box((0.2, 0.3, 0.1), material=i % 3),
                                                               (0.0, 1.0, 0.0), 10.0 * i),
                                                    (np.cos(i), 0.3, np.sin(i) * 2.0)) for i in range(9)])
-    stacked = stack.prestack(boxes)
-    assert isinstance(stacked, stack.StackedUnion)
+    stacked = stack.prestack(boxes, balls=True)  # with the balls computed ahead, as render does
+    assert isinstance(stacked, stack.StackedUnion) and stacked.balls[1] is not None
     rng = np.random.default_rng(0)
     p = jnp.asarray(rng.uniform(-6.0, 6.0, (3000, 3)) * np.array([1.0, 0.4, 1.0]))
-    for surface in (SHOWCASE.surface, boxes, stacked):
+    ahead = stack.prestack(SHOWCASE.surface, balls=True)
+    assert sum(b is not None for b in ahead.balls) == 14  # all but the plane and 3 spheres
+    for surface in (SHOWCASE.surface, ahead, boxes, stacked):
         (d_skip, m_skip), (d_full, m_full) = _union_on_lanes(surface, p)
         np.testing.assert_allclose(d_skip, d_full, rtol=1e-12, atol=1e-12)
         np.testing.assert_array_equal(m_skip, m_full)

@@ -94,6 +94,7 @@ class Union(SDF):
 
     children_: tuple
     stack_threshold: int = eqx.field(static=True)
+    balls: tuple | None = None  # the children's bounding balls, set by `stack.prestack`
 
     def __init__(self, *children, stack_threshold=STACK_THRESHOLD):
         if not children:
@@ -103,12 +104,20 @@ class Union(SDF):
             raise ValueError(f"`Union(stack_threshold={stack_threshold!r})`: expected an integer ≥ 1")
         self.children_ = tuple(check_sdf(c, f"Union(children[{i}])") for i, c in enumerate(children))
         self.stack_threshold = stack_threshold
+        self.balls = None
 
     def children(self):
         return self.children_
 
     def eval(self, p):
-        return union_eval(self.children_, p, self.stack_threshold)
+        return union_eval(self.children_, p, self.stack_threshold, self.balls)
+
+    def with_balls(self, balls):
+        """A copy holding `balls` (`stack.prestack`; the same function)."""
+        copy = object.__new__(type(self))
+        copy.__dict__.update(self.__dict__)
+        object.__setattr__(copy, "balls", balls)
+        return copy
 
     def bounding_ball(self):
         return enclosing_ball([c.bounding_ball() for c in self.children_])

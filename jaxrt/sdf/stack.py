@@ -107,13 +107,13 @@ def stack_nodes(members):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *members)
 
 
-def stacked_eval(stacked, p, ids=None, d_before=None):
+def stacked_eval(stacked, p, ids=None, d_before=None, balls=None):
     """(d_{j*}, m_{j*}, ids[j*]) over the n stacked children (ids: their indices in the
     union, default 0..n−1): a `lax.scan` over the children with the loop's select,
     (d, m, i) ← (d_k, m_k, ids[k]) where k = 0 or d_k < d, so the program holds one copy
     of the child (see the module docstring). With `d_before` (the union's distance
     before the group), a child that cannot come nearer than min(d_before, d) is
-    skipped (`culled_eval`)."""
+    skipped (`culled_eval`; `balls`: the members' balls stacked, or None)."""
     n = jax.tree_util.tree_leaves(stacked)[0].shape[0]
     ids = jnp.arange(n, dtype=jnp.int32) if ids is None else jnp.asarray(ids, jnp.int32)
     first = jax.tree_util.tree_map(lambda x: x[0], stacked)
@@ -122,16 +122,17 @@ def stacked_eval(stacked, p, ids=None, d_before=None):
 
     def step(carry, xs):
         d, m, j = carry
-        child, k, i = xs
+        child, k, i, ball = xs
         if d_before is None:
             dc, mc = child.eval(p)
         else:
-            dc, mc = culled_eval(child, p, jnp.where(k == 0, d_before, jnp.minimum(d, d_before)))
+            dc, mc = culled_eval(child, p, jnp.where(k == 0, d_before, jnp.minimum(d, d_before)),
+                                 ball)
         take = (k == 0) | (dc < d)
         return (select(take, dc, d), select(take, mc, m), select(take, i, j)), None
 
     (d, m, j), _ = jax.lax.scan(step, (d0, m0, jnp.int32(0)),
-                                (stacked, jnp.arange(n, dtype=jnp.int32), ids))
+                                (stacked, jnp.arange(n, dtype=jnp.int32), ids, balls))
     return d, m, j
 
 
@@ -162,16 +163,17 @@ def union_parts(children, threshold=None, keep=None):
     return tuple(parts), tuple(ids), tuple(stacked)
 
 
-def parts_eval(parts, ids, stacked, p):
+def parts_eval(parts, ids, stacked, p, balls=None):
     """`union_eval` of the `union_parts` (parts, ids, stacked): candidates of different
     parts are combined by (distance, child index), so that ties go to the first child, as
-    in the loop."""
+    in the loop. `balls`: the parts' balls computed ahead (`prestack`), or None."""
     best = None
-    for part, ix, st in zip(parts, ids, stacked):
+    balls = (None,) * len(parts) if balls is None else balls
+    for part, ix, st, ball in zip(parts, ids, stacked, balls):
         if st:
-            dc, mc, ic = stacked_eval(part, p, ix, None if best is None else best[0])
+            dc, mc, ic = stacked_eval(part, p, ix, None if best is None else best[0], ball)
         else:
-            dc, mc = part.eval(p) if best is None else culled_eval(part, p, best[0])
+            dc, mc = part.eval(p) if best is None else culled_eval(part, p, best[0], ball)
             ic = jnp.int32(ix[0])
         if best is None:
             best = (dc, mc, ic)
@@ -224,17 +226,22 @@ def _equations(jaxpr):
     return n
 
 
-def _costly(child, p):
-    """Whether `child.eval` is worth skipping: at least CULL_MIN_EQUATIONS equations
-    (counted once per structure)."""
-    key = (jax.tree_util.tree_structure(child), p.shape, p.dtype)
+def _traced(child, p):
+    """(equations of `child.eval`, the shape and dtype of its material), traced once per
+    structure (p may be a `jax.ShapeDtypeStruct`)."""
+    key = (jax.tree_util.tree_structure(child), tuple(p.shape), p.dtype)
     if key not in _EQUATIONS:
         closed = jax.make_jaxpr(lambda c, x: c.eval(x))(child, p)
-        _EQUATIONS[key] = _equations(closed.jaxpr)
-    return _EQUATIONS[key] >= CULL_MIN_EQUATIONS
+        _EQUATIONS[key] = (_equations(closed.jaxpr), closed.out_avals[1])
+    return _EQUATIONS[key]
 
 
-def culled_eval(child, p, d):
+def _costly(child, p):
+    """Whether `child.eval` is worth skipping: at least CULL_MIN_EQUATIONS equations."""
+    return _traced(child, p)[0] >= CULL_MIN_EQUATIONS
+
+
+def culled_eval(child, p, d, ball=None):
     """`child.eval(p)`, or where the child's `bounding_ball` shows that it cannot come
     nearer than d (the union's distance so far) at any point of p: (its bound, material
     0), which a union's `dc < d` then never takes. The same union either way (exact,
@@ -244,17 +251,23 @@ def culled_eval(child, p, d):
     `cond` with a per-ray predicate skips its branch for a tile of rays none of which
     needs it (`lanes.control._cond_skipping`): the rays of a tile march through the
     same region, so a tile evaluates only the children near it. Elsewhere (vmap, the
-    Pallas kernel) a cond evaluates both branches, so nothing is skipped."""
+    Pallas kernel) a cond evaluates both branches, so nothing is skipped.
+
+    `ball`: the child's ball computed ahead (`prestack(balls=True)`: once per render,
+    not at every site), else it is computed here."""
     from ..march import tape
 
-    ball = child.bounding_ball() if tape.skips_blocks() else None
-    if ball is None or not _costly(child, p):
+    if not tape.skips_blocks() or not _costly(child, p):
         return child.eval(p)
-    centre, radius, weight = ball
-    gap = safe_norm(p - centre.astype(p.dtype))
+    ball = child.bounding_ball() if ball is None else ball
+    if ball is None:
+        return child.eval(p)
+    # the bound decides, and is never the union's value: no derivative through it
+    centre, radius, weight = jax.lax.stop_gradient(ball)
+    gap = safe_norm(jax.lax.stop_gradient(p) - centre.astype(p.dtype))
     bound = (weight * (gap - radius) - CULL_MARGIN * (gap + radius)).astype(d.dtype)
-    need = jnp.any(~((bound > 0.0) & (bound > d)))
-    m_shape = jax.eval_shape(lambda x: child.eval(x)[1], p)
+    need = jnp.any(~((bound > 0.0) & (bound > jax.lax.stop_gradient(d))))
+    m_shape = _traced(child, p)[1]
 
     def near():
         # the material passes the cond as a float (exact for indices < 2²⁴): an integer
@@ -268,15 +281,17 @@ def culled_eval(child, p, d):
     return dc, mc.astype(m_shape.dtype)
 
 
-def union_eval(children, p, threshold=None):
+def union_eval(children, p, threshold=None, balls=None):
     """(min_i f_i(p), material of the first minimising child), as the loop
     `d = where(d_i < d, d_i, d)` over i = 1..n, with groups of ≥ `threshold` children
-    of one structure evaluated stacked (None: `STACK_THRESHOLD`; `parts_eval`)."""
+    of one structure evaluated stacked (None: `STACK_THRESHOLD`; `parts_eval`).
+    `balls`: the children's balls computed ahead (`prestack`), or None."""
     split = union_parts(children, threshold)
+    balls = (None,) * len(children) if balls is None else balls
     if split is None:
         d, m = children[0].eval(p)
-        for child in children[1:]:
-            dc, mc = culled_eval(child, p, d)
+        for child, ball in zip(children[1:], balls[1:]):
+            dc, mc = culled_eval(child, p, d, ball)
             take = dc < d
             m = select(take, mc, m)
             d = select(take, dc, d)
@@ -307,9 +322,10 @@ class StackedUnion(SDF):
     ids: tuple = eqx.field(static=True)
     stacked: tuple = eqx.field(static=True)
     materials: frozenset = eqx.field(static=True)
+    balls: tuple | None = None
 
     def eval(self, p):
-        return parts_eval(self.parts, self.ids, self.stacked, p)
+        return parts_eval(self.parts, self.ids, self.stacked, p, self.balls)
 
     def lipschitz(self):
         return parts_lipschitz(self.parts, self.stacked)
@@ -322,19 +338,40 @@ class StackedUnion(SDF):
         return set(self.materials)
 
 
-def prestack(surface):
+def _balls(parts, stacked):
+    """The `bounding_ball` of each part that `culled_eval` would skip (stacked parts:
+    their members' balls stacked), else None."""
+    out = []
+    for part, st in zip(parts, stacked):
+        first = jax.tree_util.tree_map(lambda x: x[0], part) if st else part
+        leaves = [x for x in jax.tree_util.tree_leaves(first) if jnp.issubdtype(x.dtype, jnp.floating)]
+        p = jax.ShapeDtypeStruct((3,), leaves[0].dtype if leaves else jnp.float32)
+        ball = first.bounding_ball() if _costly(first, p) else None
+        if ball is not None and st:
+            ball = jax.vmap(lambda c: c.bounding_ball())(part)
+        out.append(ball)
+    return tuple(out)
+
+
+def prestack(surface, balls=False):
     """`surface` with every `Union` that stacks a group (`union_parts`) replaced by its
-    `StackedUnion` (the same function). `render` calls it at the top of its program."""
+    `StackedUnion` (the same function). `render` calls it at the top of its program.
+    With `balls`, each union also holds its children's bounding balls (`_balls`), which
+    `culled_eval` then reads instead of computing them at every site."""
     from .combine import Union
     from .primitives import Plane
 
     def convert(node):
         if type(node) is not Union:
             return node
-        children = tuple(prestack(c) for c in node.children_)
+        children = tuple(prestack(c, balls) for c in node.children_)
         split = union_parts(children, node.stack_threshold, keep=lambda c: isinstance(c, Plane))
         if split is None:
-            return eqx.tree_at(lambda u: u.children_, node, children)
-        return StackedUnion(*split, frozenset(node.material_ids()))
+            new = eqx.tree_at(lambda u: u.children_, node, children)
+            if balls:
+                new = new.with_balls(_balls(children, (False,) * len(children)))
+            return new
+        return StackedUnion(*split, frozenset(node.material_ids()),
+                            _balls(split[0], split[2]) if balls else None)
 
     return jax.tree_util.tree_map(convert, surface, is_leaf=lambda x: type(x) is Union)
