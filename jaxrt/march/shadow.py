@@ -178,8 +178,8 @@ def march(sdf, origin, wi, t_max, options):
         # The next phase: the march while it lasts, then END for a ray out of budget
         # (the march stopped before the light, not yet dark), then the refinement of a
         # minimum that it can change: none where no sample lowered the penumbra below 1
-        # (t_best = 0: most shadow rays) or the ray was blocked (visibility 0); after
-        # the loop those keep their sample alone.
+        # (t_best = 0) or the ray was blocked (visibility 0), which after the loop keep
+        # their sample alone (the "plain" form refines them and discards the result).
         after_march = dict(new)
         out_of_budget = (after_march["t"] < t_max) & (after_march["vis"] > MIN_VISIBILITY)
         finished = done_phase

@@ -104,10 +104,10 @@ def _while(eqn, ins, ctx):
             k += n
         return objs
 
-    def cond_lanes(objs):
+    def cond_lanes(objs, consts=cconsts):
         # a batched while (vmap inside the one-ray program) has a predicate of shape S
         # (the leading axes of every carry): it runs while any element is true
-        (c,) = ctx.eval_closed(cond_j, list(cconsts) + objs)
+        (c,) = ctx.eval_closed(cond_j, list(consts) + objs)
         return _fold(list(c.reshape(-1)), "or", np.dtype(bool), ctx)
 
     def step(state, consts=(cconsts, bconsts)):
@@ -121,8 +121,7 @@ def _while(eqn, ins, ctx):
             new = [_select_elements(c, n, o) for n, o in zip(new, objs)]
         new_flat = pack(new)
         flat = [jnp.where(active, n, o) for n, o in zip(new_flat, flat)]
-        (still,) = ctx.eval_closed(cond_j, list(consts[0]) + unpack(flat))
-        still = _fold(list(still.reshape(-1)), "or", np.dtype(bool), ctx)
+        still = cond_lanes(unpack(flat), consts[0])
         active = active & _broadcast(still, ctx.block, bool, ctx)
         return flat, active
 
