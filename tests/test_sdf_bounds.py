@@ -2,6 +2,7 @@
 (`sdf.stack.culled_eval`): every ball bounds its node's value from below outside it, and
 a union that skips children is the same function as one that evaluates them all."""
 
+import contextlib
 from pathlib import Path
 
 import jax
@@ -72,7 +73,7 @@ def _union_on_lanes(surface, points):
     """The union evaluated as "fused" traces it (skipping far children) and as the
     vmapped path does, under one jit each."""
     def run(skipping, p):
-        with tape.lanes("fused" if skipping else None):
+        with tape.lanes("fused" if skipping else None), tape.stepping():
             return jax.vmap(surface.eval)(p)
 
     skip = jax.jit(lambda p: run(True, p))(points)
@@ -83,7 +84,8 @@ def _union_on_lanes(surface, points):
 def test_a_union_that_skips_far_children_is_the_same_function():
     """The showcase's union (planes, placements, booleans, deformations) and a group of
     stacked boxes, at points near and far: distances to rounding and materials equal,
-    with children skipped (`cond` in the program) where they are traced for "fused"."""
+    with children skipped (`cond` in the program) where a long march's loop is traced
+    for "fused"."""
     boxes = sdf.Union(sdf.Plane(), *[sdf.Translate(sdf.Rotate(sdf.Box((0.2, 0.3, 0.1), material=i % 3),
                                                               (0.0, 1.0, 0.0), 10.0 * i),
                                                    (np.cos(i), 0.3, np.sin(i) * 2.0)) for i in range(9)])
@@ -98,7 +100,9 @@ def test_a_union_that_skips_far_children_is_the_same_function():
         np.testing.assert_allclose(d_skip, d_full, rtol=1e-12, atol=1e-12)
         np.testing.assert_array_equal(m_skip, m_full)
 
-        def program(skipping):
-            with tape.lanes("fused" if skipping else None):
+        def program(lanes, stepping):
+            with tape.lanes(lanes), (tape.stepping() if stepping else contextlib.nullcontext()):
                 return str(jax.make_jaxpr(surface.eval)(p[0]))
-        assert "cond[" in program(True) and "cond[" not in program(False)
+        # skipped in a long march's loop traced for "fused" only (not at a normal, say)
+        assert "cond[" in program("fused", True)
+        assert "cond[" not in program("fused", False) + program(None, True) + program("pallas", True)

@@ -19,7 +19,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from . import form
+from . import form, tape
 from .options import check_options
 from .search import _INV_PHI, golden_plain
 from .sphere import rounding_floor
@@ -197,7 +197,8 @@ def march(sdf, origin, wi, t_max, options):
                 sign=jnp.ones((), dtype), f_end=zero, f_best=zero)
     if refine:
         init.update(a=zero, b=zero, x1=zero, g1=zero, x2=zero, g2=zero, f1=zero, f2=zero)
-    s = jax.lax.while_loop(lambda s: s["phase"] < done_phase, body, init)
+    with tape.stepping():
+        s = jax.lax.while_loop(lambda s: s["phase"] < done_phase, body, init)
     sign, t_best = s["sign"], s["t_best"]
     f_best = s["f_best"]
     # Out of budget before the light (and not already dark) while still converging on a
@@ -253,7 +254,8 @@ def _plain(sdf, origin, wi, t_max, options):
     zero = jnp.zeros((), dtype)
     t0 = jnp.maximum(jnp.asarray(eps, dtype), rounding_floor(origin))
     init = (t0, jnp.ones((), dtype), jnp.zeros((), jnp.int32), t0, zero, zero, t0, t0, zero)
-    t_end, vis, _, _, f_last, t_best, lo, hi, f_best = jax.lax.while_loop(cond, body, init)
+    with tape.stepping():
+        t_end, vis, _, _, f_last, t_best, lo, hi, f_best = jax.lax.while_loop(cond, body, init)
     # As in `march`: a ray out of budget while its distance still falls is blocked.
     ran_out = (t_end < t_max) & (vis > MIN_VISIBILITY)
     falling = sdf(origin + t_end * wi) * sign < f_last * sign

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from ..vecmath import safe_div
-from . import form
+from . import form, tape
 from .options import check_options
 
 
@@ -219,7 +219,8 @@ def march(sdf, origin, direction, settings, cone, t_max):
         s, start, f_star = _plain(sdf, origin, direction, settings, init, step, secant,
                                   inv_lipschitz, t_max)
     else:
-        s = jax.lax.while_loop(lambda s: s["phase"] < DONE, body, init)
+        with tape.stepping():
+            s = jax.lax.while_loop(lambda s: s["phase"] < DONE, body, init)
         start, f_star = s["start"], s["f_star"]
     t, r, done, sign = s["t"], s["r"], s["done"], s["sign"]
     hit, approaching, t_star, x_star = secant(s)
@@ -276,7 +277,8 @@ def _plain(sdf, origin, direction, settings, init, step, secant, inv_lipschitz, 
         new["r"] = jnp.where(new["done"], s["r"], sign * sdf(x) * inv_lipschitz)
         return new
 
-    s = jax.lax.while_loop(lambda s: (~s["done"]) & (s["steps"] < settings.max_steps),
-                           body, init)
+    with tape.stepping():
+        s = jax.lax.while_loop(lambda s: (~s["done"]) & (s["steps"] < settings.max_steps),
+                               body, init)
     x_star = secant(s)[3]
     return s, start, sdf(x_star)

@@ -176,6 +176,21 @@ def skips_blocks():
     return lane_backend() == "fused"
 
 
+def stepping():
+    """Context: the loop of a long march (sphere tracing, a soft shadow) is traced. Its
+    SDF evaluations are the ones where, on "fused", a union skips the children that no
+    ray of a tile can reach (`culls`; `sdf.stack.culled_eval`): tens to hundreds per
+    ray. The few others (normals, Newton and settling steps) evaluate every child, which
+    keeps their `cond`s out of the program."""
+    return _setting("stepping", True)
+
+
+def culls():
+    """Whether a union skips far children here: a long march's loop (`stepping`) traced
+    for "fused" (`lanes`)."""
+    return skips_blocks() and bool(getattr(_STATE, "stepping", False))
+
+
 def skipping_tiles(axis_name):
     """Context: the program is replayed under `jax.vmap(..., axis_name=axis_name)` over a
     tile of rays (a `lax.map` iteration), where `cond` lets the tile skip work that none

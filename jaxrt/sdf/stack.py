@@ -247,7 +247,7 @@ def culled_eval(child, p, d, ball=None):
     0), which a union's `dc < d` then never takes. The same union either way (exact,
     ties included: a skipped child has f ≥ bound > d).
 
-    Only in programs traced for the "fused" lanes (`march.tape.skips_blocks`), where a
+    Only in the loops of long marches traced for the "fused" lanes (`march.tape.culls`), where a
     `cond` with a per-ray predicate skips its branch for a tile of rays none of which
     needs it (`lanes.control._cond_skipping`): the rays of a tile march through the
     same region, so a tile evaluates only the children near it. Elsewhere (vmap, the
@@ -257,7 +257,7 @@ def culled_eval(child, p, d, ball=None):
     not at every site), else it is computed here."""
     from ..march import tape
 
-    if not tape.skips_blocks() or not _costly(child, p):
+    if not tape.culls() or not _costly(child, p):
         return child.eval(p)
     ball = child.bounding_ball() if ball is None else ball
     if ball is None:
