@@ -2,7 +2,7 @@
 
 - EXR (OpenEXR): linear float32 radiance plus AOV layers; lossless round trip.
 - PNG: an 8-bit sRGB-encoded preview of linear radiance (the sRGB OETF of IEC 61966-2-1,
-  via colour-science), written with the standard library (zlib + struct).
+  in numpy), written with the standard library (zlib + struct).
 - MERL: the binary BRDF tables of Matusik et al. 2003, "A Data-Driven Reflectance Model",
   used by the BRDF-fitting study (Ngan et al. 2005).
 
@@ -26,7 +26,6 @@ from collections.abc import Callable, Mapping
 import numpy as np
 import OpenEXR
 
-from ._colour import colour
 
 
 class JaxrtIOError(ValueError):
@@ -289,9 +288,13 @@ def read_exr(path) -> dict[str, np.ndarray]:
 def srgb_encode(x) -> np.ndarray:
     """The sRGB OETF (IEC 61966-2-1): 12.92 x for x <= 0.0031308, else 1.055 x^(1/2.4) - 0.055.
 
-    Evaluated by colour-science (`colour.cctf_encoding(x, function="sRGB")`); float64.
+    Float64, in numpy: colour-science (`colour.cctf_encoding(x, function="sRGB")`, which
+    tests/test_io.py compares against) takes over a second to import, a fifth of a
+    warm `jaxrt render`.
     """
-    return np.asarray(colour().cctf_encoding(np.asarray(x, dtype=np.float64), function="sRGB"))
+    x = np.asarray(x, dtype=np.float64)
+    high = 1.055 * np.power(np.maximum(x, 0.0031308), 1.0 / 2.4) - 0.055
+    return np.where(x <= 0.0031308, 12.92 * x, high)
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:

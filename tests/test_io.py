@@ -198,10 +198,13 @@ def test_png_matches_colour_science_srgb(tmp_path):
         np.testing.assert_array_equal(np.asarray(im), expected)
 
 
-def test_srgb_encode_is_the_iec_formula():
-    x = np.linspace(0.0, 1.0, 1001)
-    ref = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
-    np.testing.assert_allclose(jio.srgb_encode(x), ref, atol=1e-12)
+def test_srgb_encode_is_colour_sciences_srgb_oetf():
+    """IEC 61966-2-1 as colour-science evaluates it, both branches and the knee."""
+    from jaxrt._colour import colour
+
+    x = np.concatenate([np.linspace(0.0, 1.0, 1001), [0.0031308, 0.0031309, 1e-9]])
+    ref = colour().cctf_encoding(x, function="sRGB")
+    np.testing.assert_allclose(jio.srgb_encode(x), ref, rtol=1e-12, atol=1e-15)
 
 
 def test_png_exposure_and_clamp(tmp_path):
