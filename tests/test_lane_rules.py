@@ -67,6 +67,27 @@ def lane_program_primitives(closed, params, a, b, **options):
     return primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
 
 
+def test_equations_that_rules_build_print():
+    """Rules build equations of `jax.lax` primitives (rounding from floor, products of a
+    reduction) with the parameters `jax.lax` gives them on this JAX: printing a jaxpr
+    reads `mul`'s `out_dtype` (a KeyError when it was missing, in every Pallas program)."""
+    def fn(p, a, b):
+        return lax.round(a * p[0], lax.RoundingMethod.TO_NEAREST_EVEN) + jnp.prod(jnp.stack([a, b, p[1]]))
+
+    params, a, b = inputs()
+    closed = jax.make_jaxpr(fn)(params, a[0], b[0])
+
+    def lanes(p, a, b):
+        outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N)
+        return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
+
+    program = jax.make_jaxpr(lanes)(params, a, b)
+    reference = jax.make_jaxpr(lax.mul)(1.0, 1.0).eqns[0].params
+    muls = [e for e in program.jaxpr.eqns if e.primitive.name == "mul"]
+    assert muls and all(dict(e.params) == dict(reference) for e in muls)
+    assert "mul" in str(program)
+
+
 def index(a, n):
     return jnp.clip(jnp.floor(jnp.abs(a) * n / 2).astype(jnp.int32), 0, n - 1)
 

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .jax_internals import IDENTITY, PRIMS
+from .jax_internals import IDENTITY, PRIMS, default_params
 from .values import _const_lane, _is_const, _lane_shape, _obj
 
 def _bind_lanes(prim, lanes, params, out_dtype, ctx):
@@ -54,7 +54,7 @@ def _elementwise(eqn, ins, ctx):
 def _apply(name, *lanes, dtype, ctx, **params):
     """Elementwise primitive `name` (from jax.lax) on lanes."""
     prim = PRIMS[name]
-    return _bind_lanes(prim, list(lanes), params, dtype, ctx)
+    return _bind_lanes(prim, list(lanes), {**default_params(name), **params}, dtype, ctx)
 
 
 def _select(pred, on_false, on_true, dtype, ctx):

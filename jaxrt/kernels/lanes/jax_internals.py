@@ -7,6 +7,8 @@ whose layout changes between JAX versions (a scan's `num_consts`/`num_carry` in 
 — `dimension_numbers`, `axes`, `new_sizes`... — where they use them; `_RULES` in
 `interpreter.py` maps primitive names to rules.)"""
 
+import functools
+
 import jax
 from jax import lax
 from jax.extend import core as jcore
@@ -59,6 +61,16 @@ EMPTY = ("empty2", "empty")
 #: Primitives whose inner jaxpr is inlined (`control._call`).
 CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint", "custom_jvp_call",
          "custom_vjp_call", "custom_vjp_call_jaxpr")
+
+@functools.cache
+def default_params(name):
+    """The parameters of an equation of `PRIMS[name]` as `jax.lax` makes it on this JAX
+    (`mul` carries `out_dtype`, which jaxpr printing reads), for the equations that
+    rules build (`elementwise._apply`)."""
+    if name != "mul":
+        return {}
+    return dict(jax.make_jaxpr(lax.mul)(1.0, 1.0).eqns[0].params)
+
 
 #: The `jax.lax` primitives that rules build from (`elementwise._apply`), by name.
 PRIMS = {
