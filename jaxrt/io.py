@@ -27,7 +27,6 @@ import numpy as np
 import OpenEXR
 
 
-
 class JaxrtIOError(ValueError):
     """A file could not be read or written: the message names the file and the problem."""
 

@@ -62,6 +62,7 @@ EMPTY = ("empty2", "empty")
 CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint", "custom_jvp_call",
          "custom_vjp_call", "custom_vjp_call_jaxpr")
 
+
 @functools.cache
 def default_params(name):
     """The parameters of an equation of `PRIMS[name]` as `jax.lax` makes it on this JAX
