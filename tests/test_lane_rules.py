@@ -58,13 +58,18 @@ def lanes_and_vmap(fn, params, a, b, **options):
     return closed, [np.asarray(x) for x in lanes(params, a, b)], [np.asarray(x) for x in want]
 
 
-def lane_program_primitives(closed, params, a, b, **options):
-    """The primitives of the lane program that `eval_lanes` builds from `closed`."""
+def lane_program(closed, params, a, b, **options):
+    """The lane program (a ClosedJaxpr) that `eval_lanes` builds from `closed`."""
     def lanes(p, a, b):
         outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N, **options)
         return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
 
-    return primitives(jax.make_jaxpr(lanes)(params, a, b).jaxpr)
+    return jax.make_jaxpr(lanes)(params, a, b)
+
+
+def lane_program_primitives(closed, params, a, b, **options):
+    """The primitives of the lane program that `eval_lanes` builds from `closed`."""
+    return primitives(lane_program(closed, params, a, b, **options).jaxpr)
 
 
 def test_equations_that_rules_build_print():
@@ -75,13 +80,7 @@ def test_equations_that_rules_build_print():
         return lax.round(a * p[0], lax.RoundingMethod.TO_NEAREST_EVEN) + jnp.prod(jnp.stack([a, b, p[1]]))
 
     params, a, b = inputs()
-    closed = jax.make_jaxpr(fn)(params, a[0], b[0])
-
-    def lanes(p, a, b):
-        outs = eval_lanes(closed, [lanes_of(p), _lane(a), _lane(b)], N)
-        return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
-
-    program = jax.make_jaxpr(lanes)(params, a, b)
+    program = lane_program(jax.make_jaxpr(fn)(params, a[0], b[0]), params, a, b)
     reference = jax.make_jaxpr(lax.mul)(1.0, 1.0).eqns[0].params
     muls = [e for e in program.jaxpr.eqns if e.primitive.name == "mul"]
     assert muls and all(dict(e.params) == dict(reference) for e in muls)
