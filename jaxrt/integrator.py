@@ -577,8 +577,9 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     Every step is the same computation, compiled once whatever the depth; each traces
     one ray per camera ray (a batch over the pixels under `render`'s vmap). On "fused"
     a block of rays skips a slot that is dead for all of them (`tape.cond`): most slots,
-    where few pixels see a mirror or glass; the replay of its record skips it in the
-    same tiles (`render._replay_tiles`).
+    where few pixels see a mirror or glass; the replay of its record shades a slot only
+    for the rays alive in it (`tape._gathered`; in RGB: the branch closes over the
+    scene and, spectral, over the sample's wavelength).
     """
     b = len(tree.branches)
     sizes = tree.rays_per_level()
@@ -621,7 +622,7 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     def step(carry, i):
         buffer, ray, levels, aovs = carry
         ray = ray if ahead else read(buffer, i)
-        out = tape.cond(ray.alive, shade, dead, ray)
+        out = tape.cond(ray.alive, shade, dead, ray, gather=wavelength is None)
         levels = levels.at[level_of[i]].add(out.radiance)
         aovs = jax.tree_util.tree_map(lambda a, x: jnp.where(i == 0, x, a), aovs, out.aovs)
         children = [out.children[name] for name in tree.branches]

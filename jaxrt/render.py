@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from . import sharding, silhouette, xla
 from .camera import pixel_samples
 from .integrator import ray_tree, trace_radiance
-from .kernels.fused import _from_tiles, _to_tiles, resolve_backend, tile_shape
+from .kernels.fused import resolve_backend
 from .march import tape
 from .sdf.stack import prestack
 from .settings import RenderSettings
@@ -129,8 +129,8 @@ def _recorded(kernel, params, samples, settings, grid, offset):
         out, kinds = _record(kernel, eqx.combine(primals[0], static), primals[1], settings,
                              grid, offset)
         entries = jax.lax.stop_gradient(out["tape"])
-        tiles = _replay_tiles(settings, grid, params[0])
-        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds, tiles)  # noqa: E731
+        gather = _replay_gathers(settings, params[0])
+        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds, gather)  # noqa: E731
         _, tangent = jax.jvp(replay, primals, tangents)
         return out["image"], tangent
 
@@ -170,7 +170,7 @@ def _record(kernel, params, samples, settings, grid, offset):
     return out, kinds[0]
 
 
-def _replay(kernel, params, samples, entries, kinds, tiles=None):
+def _replay(kernel, params, samples, entries, kinds, gather=0):
     """The kernel vmapped over all `samples` at once with every march read from `entries`
     (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable.
 
@@ -185,10 +185,10 @@ def _replay(kernel, params, samples, entries, kinds, tiles=None):
     cotangent is a scatter-add into one array, where per-sample copies would take
     samples × size (a 129³ grid at 128×128: 131 GiB).
 
-    With `tiles` (`_replay_tiles`: the block's grid and a tile shape), the samples are
-    replayed in `lax.map` tiles, each a vmap over a named axis, so that a slot of the
-    ray tree that no ray of a tile needs is skipped (`tape.skipping_tiles`), as the lane
-    kernel skips it in the same tiles."""
+    With `gather` rays (`_replay_gathers`), the vmap is over a named axis and a slot of
+    the scan ray tree is shaded only for the samples alive in it, in batches of
+    `gather` (`tape.gathering`); the scene then enters unbatched, since the slot's
+    batches close over it."""
     dyn, static = eqx.partition(params, eqx.is_inexact_array)
     small, large = eqx.partition(dyn, lambda x: x.size <= PER_SAMPLE_MAX)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
@@ -199,49 +199,26 @@ def _replay(kernel, params, samples, entries, kinds, tiles=None):
         with tape.replaying(entry):
             return kernel((*camera.generate_ray(s[0], s[1]), s), scene, camera)
 
-    if tiles is None:
+    if not gather:
         per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, n), small)
         return jax.vmap(one)(per_sample, samples, entries)
-    grid, (th, tw) = tiles
-
-    def replay_tile(block):
-        per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, th * tw), small)
-        with tape.skipping_tiles(_TILE_AXIS):
-            return jax.vmap(one, axis_name=_TILE_AXIS)(per_sample, *block)
-
-    def to_tiles(x):  # [n, ...] → [tiles, th·tw, ...], the lane kernel's tiles
-        x = _to_tiles(x, grid, (th, tw))
-        return x.reshape((-1, th * tw) + x.shape[4:])
-
-    ty, tx = -(-grid[0] // th), -(-grid[1] // tw)
-    out = jax.lax.map(replay_tile, jax.tree_util.tree_map(to_tiles, (samples, entries)))
-    return jax.tree_util.tree_map(
-        lambda x: _from_tiles(x.reshape((ty, tx, th, tw) + x.shape[2:]), grid), out)
+    with tape.gathering(_RAYS_AXIS, gather):
+        return jax.vmap(one, in_axes=(None, 0, 0), axis_name=_RAYS_AXIS)(small, samples, entries)
 
 
-_TILE_AXIS = "jaxrt_replay_rays"
+_RAYS_AXIS = "jaxrt_replay_rays"
 
 
-REPLAY_TILES_MIN_SLOTS = 15
-"""The smallest scan ray tree (`recursion = "scan"`, slots = 2^(max_depth + 1) − 1 with
-mirrors and glass) that `_replay` runs in tiles on "fused". 2 CPU cores, jax 0.10.2,
-value_and_grad: the glass scene at 160×120 (depth 6, 127 slots) 20.8 → 13.3 s in tiles;
-the showcase at 160×90 (depth 2, 7 slots) 3.85 s either way, its gradient compiling for
-100 s whole and 115–123 s in tiles."""
-
-
-def _replay_tiles(settings, grid, scene):
-    """(grid, tile shape) of `_replay`: on "fused", for a ray tree in one scan of at least
-    `REPLAY_TILES_MIN_SLOTS` slots, the lane kernel's tiles of the block `grid` (rows,
-    columns of samples), so that the replay skips the slots of the tree that the record
-    skipped; else None (one vmap over every sample: a slot no ray of the whole image
-    needs is rare, and on a GPU the replay is one wide program)."""
-    if settings.recursion != "scan" or resolve_backend(settings.backend) != "fused":
-        return None
-    if sum(ray_tree(scene, settings).rays_per_level()) < REPLAY_TILES_MIN_SLOTS:
-        return None
-    tile = tile_shape(settings.rays_per_tile(grid[0] * grid[1], lanes=True), grid)
-    return None if tile == tuple(grid) else (grid, tile)
+def _replay_gathers(settings, scene):
+    """The batch of rays in which `_replay` shades each slot of the ray tree, only for
+    its live samples (`KernelOptions.replay_gather`), or 0: on "fused", for an RGB ray
+    tree in one scan (most slots are dead for most rays). Not on a GPU, where the
+    replay is one wide program and each batch would be kernels of their own."""
+    tree = ray_tree(scene, settings)
+    if (settings.recursion == "scan" and tree.depth > 0 and tree.wavelengths == 0
+            and resolve_backend(settings.backend) == "fused"):
+        return settings.kernel.replay_gather
+    return 0
 
 
 PER_SAMPLE_MAX = 4096
@@ -276,8 +253,8 @@ def _replay_image(scene, camera, settings):
     kernel = _sample_kernel(settings)
     grid = (camera.height, camera.width * settings.spp)
     out, kinds = _record(kernel, (scene, camera), samples, settings, grid, (0, 0))
-    tiles = _replay_tiles(settings, grid, scene)
-    return out["image"], _replay(kernel, (scene, camera), samples, out["tape"], kinds, tiles)
+    gather = _replay_gathers(settings, scene)
+    return out["image"], _replay(kernel, (scene, camera), samples, out["tape"], kinds, gather)
 
 
 def _fused(scene, camera, samples, settings, kernel, grid, offset):

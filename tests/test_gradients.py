@@ -658,9 +658,10 @@ def _replay_scene(dispersive=False):
 REPLAY_VARIANTS = {
     "whitted": {},
     "silhouette": dict(silhouette=True, max_depth=0),
-    # 15 slots: the lane kernel skips those dead in a tile of 16 rays, and so does the
-    # replay (the same 4×4 tiles of the 6×10 samples, edge tiles filled up)
-    "scan": dict(recursion="scan", max_depth=3, batch_size=16),
+    # 15 slots: the lane kernel skips those dead in a tile of 16 rays, and the replay
+    # shades a slot in batches of 16 of the 60 rays, only those with a ray alive in it
+    "scan": dict(recursion="scan", max_depth=3, batch_size=16,
+                 kernel=jr.KernelOptions(replay_gather=16)),
     "float32": dict(dtype="float32"),
 }
 
@@ -682,23 +683,31 @@ def test_replay_image_equals_the_record(variant):
         assert np.max(np.abs(a - b)) <= tol * max(1.0, np.max(np.abs(a))), name
 
 
-def test_replay_skips_the_slots_a_tile_does_not_need():
-    """On "fused", the replay of a scan ray tree runs in tiles (`render._replay_tiles`) in
-    which a slot that no ray needs is skipped: a `cond` on a `psum` over the tile's rays
-    (not a select of both branches, which is what a per-ray cond becomes under vmap),
-    in the gradient's program (its values: test_replay_image_equals_the_record[scan])."""
-    from test_kinds import histogram
-
-    from jaxrt.render import _replay_tiles
+def test_replay_shades_a_slot_only_for_its_live_rays():
+    """On "fused", the replay of a scan ray tree shades a slot only in the batches of rays
+    that hold a ray alive in it (`tape._gathered`; its program: tests/test_tape.py),
+    where without gathering (`replay_gather = 0`) every slot is shaded for every ray:
+    the gradients are the same (float64; the values:
+    test_replay_image_equals_the_record[scan])."""
+    from jaxrt.render import _replay_gathers
 
     scene, camera, settings = _replay_scene()
-    settings = settings.replace(backend="fused", **REPLAY_VARIANTS["scan"])
-    loss = lambda p: jnp.sum(jr.render(*p, settings).rgb)  # noqa: E731
-    counts = histogram(jax.make_jaxpr(jax.grad(loss))((scene, camera)).jaxpr)
-    assert counts["psum"] >= 1 and counts["cond"] >= 1, counts
-    assert _replay_tiles(settings, (6, 10), scene) == ((6, 10), (4, 4))
-    assert _replay_tiles(settings.replace(recursion="unrolled"), (6, 10), scene) is None
-    assert _replay_tiles(settings.replace(max_depth=2), (6, 10), scene) is None  # 7 slots
+    scene = eqx.tree_at(lambda s: s.heightfields, scene, [])  # a smaller program
+    settings = settings.replace(backend="fused", recursion="scan", shadows="hard")  # 3 slots
+    plain = settings.replace(kernel=jr.KernelOptions(replay_gather=0))
+    gathered = settings.replace(kernel=jr.KernelOptions(replay_gather=16))
+    assert _replay_gathers(gathered, scene) == 16 and _replay_gathers(plain, scene) == 0
+    assert _replay_gathers(gathered.replace(recursion="unrolled"), scene) == 0
+    assert _replay_gathers(gathered.replace(backend="jax"), scene) == 0
+
+    grads = {}
+    for name, s in (("plain", plain), ("gathered", gathered)):
+        loss = lambda p, s=s: jnp.sum(jr.render(*p, s).rgb * jnp.linspace(0.5, 1.5, 3))  # noqa: E731
+        value, grad = eqx.filter_value_and_grad(loss)((scene, camera))
+        grads[name] = (float(value), ravel_pytree(eqx.filter(grad, eqx.is_inexact_array))[0])
+    assert grads["gathered"][0] == pytest.approx(grads["plain"][0], rel=1e-12)
+    a, b = np.asarray(grads["gathered"][1]), np.asarray(grads["plain"][1])
+    assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b)) and np.max(np.abs(b)) > 0
 
 
 def _lane_call_outputs(jaxpr):
@@ -751,11 +760,12 @@ def test_replay_gradients_equal_the_reference_path_on_every_march(recursion):
     the record/replay gradient of every scene and camera float equals the "jax" path's.
     With the ray tree as a scan (3 levels: 15 slots, most dead for every ray), "fused"
     skips the slots dead for a whole tile of 16 rays, whose records are zeros, and the
-    replay skips them in the same tiles (`render._replay_tiles`)."""
+    replay shades each slot only in the batches of rays alive in it (`tape._gathered`)."""
     scene, camera, settings = _replay_scene()
     settings = settings.replace(backend="jax", recursion=recursion)
     if recursion == "scan":
-        settings = settings.replace(max_depth=3, batch_size=16)
+        settings = settings.replace(max_depth=3, batch_size=16,
+                                    kernel=jr.KernelOptions(replay_gather=16))
     Problem(scene, camera, settings, erode=0).check_replay("fused")
 
 

@@ -27,6 +27,7 @@ import contextlib
 import threading
 
 import jax
+import jax.numpy as jnp
 
 _STATE = threading.local()
 
@@ -191,37 +192,37 @@ def culls():
     return skips_blocks() and bool(getattr(_STATE, "stepping", False))
 
 
-def skipping_tiles(axis_name):
-    """Context: the program is replayed under `jax.vmap(..., axis_name=axis_name)` over a
-    tile of rays (a `lax.map` iteration), where `cond` lets the tile skip work that none
-    of its rays needs: the any-ray test is a `psum` over that axis, so the predicate of
-    the `lax.cond` is not batched and the cond is not turned into a select."""
-    return _setting("tile_axis", axis_name)
+def gathering(axis_name, rays):
+    """Context: the program is replayed under `jax.vmap(..., axis_name=axis_name)` over
+    a block of rays, and a `cond` that allows it (`gather=True`) evaluates its branch
+    only for the rays of the block where its predicate holds (`_gathered`), in batches
+    of `rays`. The branch must close over nothing that varies between the block's rays
+    (the replay passes the scene unbatched), or every batch would be computed for every
+    ray (the same values, at the cost of a vmap over the block)."""
+    return _setting("gather", (axis_name, rays))
 
 
-def cond(pred, fn, dead, *operands):
+def cond(pred, fn, dead, *operands, gather=False):
     """`fn(*operands)`, whose marches are one entry on the tape; `dead(*operands)` must
     equal it (in every value the program reads) where `pred` is false, and march nothing.
 
     Traced for the "fused" kernels (`lanes`), this is `lax.cond(pred, fn, dead)`: a
     block of rays in which no ray has `pred` skips `fn` (the lanes' rule), and the entry
-    holds zeros for the rays that skipped it. Replayed over tiles (`skipping_tiles`), a
-    tile in which no ray has `pred` skips `fn` likewise. Elsewhere (under `vmap`, where a
-    cond would run both branches) `fn` runs for every ray, so the replay of a record
-    calls `fn` with zero entries where `pred` is false: it must stay finite there."""
+    holds zeros for the rays that skipped it. Elsewhere (under `vmap`, where a cond would
+    run both branches) `fn` runs for every ray, so the replay of a record calls `fn`
+    with zero entries where `pred` is false: it must stay finite there. With `gather`
+    (the caller's promise that `fn` closes over nothing that varies between rays but
+    what `gathering` allows), a replay under `gathering` runs `fn` only for the rays
+    where `pred` holds, in batches (`_gathered`)."""
     tape = current()
     if tape is not None and tape.mode == "replay":
         entries = tape.take()
+        gathered = getattr(_STATE, "gather", None)
+        if gather and gathered is not None:
+            return _gathered(pred, fn, dead, operands, entries, *gathered)
 
-        def replayed(*a):
-            with replaying(entries):
-                return fn(*a)
-
-        axis = getattr(_STATE, "tile_axis", None)
-        if axis is None:
-            return replayed(*operands)
-        any_ray = jax.lax.psum(pred.astype(jax.numpy.int32), axis) > 0
-        return jax.lax.cond(any_ray, replayed, dead, *operands)
+        with replaying(entries):
+            return fn(*operands)
     if not skips_blocks():
         if tape is None:
             return fn(*operands)
@@ -245,3 +246,49 @@ def cond(pred, fn, dead, *operands):
     out, entries = jax.lax.cond(pred, live, skipped, *operands)
     tape.entries.append(entries)
     return out
+
+
+def _gathered(pred, fn, dead, operands, entries, axis, rays):
+    """The replay of `cond(pred, fn, dead, *operands)` for one ray of a block vmapped over
+    `axis`, which computes `fn` only for the rays of the block where `pred` holds.
+
+    The block's predicates, operands and entries are gathered (`all_gather`: one array
+    over the block, not a per-ray value), the rays where `pred` holds are sorted first
+    (a stable sort keeps their order), and `lax.map` runs `fn` (vmapped, with the
+    entries replayed) over batches of `rays` of them; a batch past the last such ray
+    takes `dead` instead (a `lax.cond` on one scalar: a branch, not a select). Each ray
+    then reads its own result back. The gradient goes back the same way: the batches'
+    cotangents are scattered onto the block's rays (the transpose of `all_gather` and of
+    the gathers). `fn` runs under `jax.checkpoint`, so the reverse pass keeps a batch's
+    inputs instead of its intermediates (zeros for every skipped batch, else).
+
+    A ray tree in a scan (`integrator._trace_tree_scan`) shades each slot through this:
+    for most slots few rays of an image are alive (those that met a mirror or glass)."""
+    live, operands, entries = jax.lax.all_gather((pred, operands, entries), axis)
+    n = live.shape[0]
+    rays = min(rays, n)
+    batches = -(-n // rays)
+    order = jnp.argsort(~live, stable=True)  # the rays where pred holds first
+    order = jnp.pad(order, (0, batches * rays - n)).reshape(batches, rays)
+    count = jnp.sum(live)
+
+    @jax.checkpoint
+    def run(block):
+        def one(a, e):
+            with replaying(e), _setting("gather", None):
+                return fn(*a)
+
+        return jax.vmap(one)(*block)
+
+    def skip(block):
+        return jax.vmap(lambda a: dead(*a))(block[0])
+
+    def batch(k_rows):
+        k, rows = k_rows
+        block = jax.tree_util.tree_map(lambda x: x[rows], (operands, entries))
+        return jax.lax.cond(k * rays < count, run, skip, block)
+
+    out = jax.lax.map(batch, (jnp.arange(batches), order))
+    position = jnp.zeros(n, order.dtype).at[order.reshape(-1)[:n]].set(jnp.arange(n, dtype=order.dtype))
+    mine = position[jax.lax.axis_index(axis)]
+    return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:])[mine], out)
