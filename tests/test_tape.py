@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from test_lane_rules import primitives
+
 from jaxrt.march import tape
 
 AXIS = "rays"
@@ -69,18 +71,7 @@ def test_gathered_cond_branches_per_batch():
     n = 12
     live = jnp.arange(n) % 3 == 0
     jaxpr = jax.make_jaxpr(lambda t, x: _block(t, x, live, x, 4))(jnp.ones(2), jnp.ones(n))
-    assert {"cond", "scan"} <= _primitives(jaxpr.jaxpr)
+    assert {"cond", "scan"} <= primitives(jaxpr.jaxpr)
     plain = jax.make_jaxpr(lambda t, x: _block(t, x, live, x, 0))(jnp.ones(2), jnp.ones(n))
-    assert not {"cond", "scan"} & _primitives(plain.jaxpr)
+    assert not {"cond", "scan"} & primitives(plain.jaxpr)
 
-
-def _primitives(jaxpr):
-    names = set()
-    for eqn in jaxpr.eqns:
-        names.add(eqn.primitive.name)
-        for value in eqn.params.values():
-            for sub in value if isinstance(value, (list, tuple)) else [value]:
-                inner = getattr(sub, "jaxpr", sub)
-                if hasattr(inner, "eqns"):
-                    names |= _primitives(inner)
-    return names
