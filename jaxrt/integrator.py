@@ -554,7 +554,10 @@ def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels
         def shade(ray, spawn=spawn):
             return shade_ray(scene, ray, settings, tree, colour, wavelength, spawn)
 
-        out = tape.vmap(shade)(rays)
+        gather = None
+        if level > 0 and wavelength is None:  # a replay shades the live rays alone
+            gather = (lambda ray: ray.alive, _dead_shade(shade, tree, spawn))
+        out = tape.vmap(shade, gather)(rays)
         levels.append(jnp.sum(out.radiance, axis=0))
         if level == 0:
             aovs = jax.tree_util.tree_map(lambda x: x[0], out.aovs)
@@ -593,18 +596,9 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     def shade(ray):
         return shade_ray(scene, ray, settings, tree, colour, wavelength, True)
 
-    with tape.off():  # an abstract evaluation: its marches are not the program's
-        aov_shapes = jax.eval_shape(lambda r: shade(r).aovs, root)
-    aovs = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes)
+    dead = _dead_shade(shade, tree)
+    aovs = dead(root).aovs
     levels = jnp.zeros((len(sizes), channels), origin.dtype)
-
-    def dead(ray):
-        # what `shade` gives a dead ray (no radiance, dead children), without shading it;
-        # the children keep the ray's own (unit) direction, so their slots stay finite
-        weight = jnp.zeros_like(ray.weight)
-        child = Ray(ray.origin, ray.direction, ray.cone, weight, ray.sigma, jnp.zeros((), bool))
-        return Shaded(weight, {name: child for name in tree.branches},
-                      jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes))
 
     # Vmapped (the "jax" backend, the replay), `ray` (slot i) is read from the buffer at
     # the end of the step before, after its write: XLA:CPU copies a buffer that a step
@@ -634,6 +628,26 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     init = (buffer, root if ahead else None, levels, aovs)
     (_, _, levels, aovs), _ = tape.scan(step, init, jnp.arange(slots))
     return levels, aovs
+
+
+def _dead_shade(shade, tree, spawn=True):
+    """`dead(ray)`: what `shade` (`shade_ray`) gives a dead ray (no radiance, dead
+    children, zero AOVs), without shading it. The children keep the ray's own (unit)
+    direction, so they stay finite. The AOVs' shapes come from an abstract evaluation
+    of `shade`, at the first call."""
+    shapes = []
+
+    def dead(ray):
+        if not shapes:
+            with tape.off():  # an abstract evaluation: its marches are not the program's
+                shapes.append(jax.eval_shape(lambda r: shade(r).aovs, ray))
+        aov_shapes = shapes[0]
+        weight = jnp.zeros_like(ray.weight)
+        child = Ray(ray.origin, ray.direction, ray.cone, weight, ray.sigma, jnp.zeros((), bool))
+        return Shaded(weight, {name: child for name in tree.branches} if spawn else {},
+                      jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes))
+
+    return dead
 
 
 def _write_slots(buffer, x, start, axis):

@@ -185,10 +185,10 @@ def _replay(kernel, params, samples, entries, kinds, gather=0):
     cotangent is a scatter-add into one array, where per-sample copies would take
     samples × size (a 129³ grid at 128×128: 131 GiB).
 
-    With `gather` rays (`_replay_gathers`), the vmap is over a named axis and a slot of
-    the scan ray tree is shaded only for the samples alive in it, in batches of
-    `gather` (`tape.gathering`); the scene then enters unbatched, since the slot's
-    batches close over it."""
+    With `gather` rays (`_replay_gathers`), the vmap is over a named axis and the
+    secondary rays of the ray tree (a level, or a slot of the scan tree) are shaded
+    only where alive, in batches of `gather` (`tape.gathering`); the scene then enters
+    unbatched, since the batches close over it."""
     dyn, static = eqx.partition(params, eqx.is_inexact_array)
     small, large = eqx.partition(dyn, lambda x: x.size <= PER_SAMPLE_MAX)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
@@ -210,13 +210,12 @@ _RAYS_AXIS = "jaxrt_replay_rays"
 
 
 def _replay_gathers(settings, scene):
-    """The batch of rays in which `_replay` shades each slot of the ray tree, only for
-    its live samples (`KernelOptions.replay_gather`), or 0: on "fused", for an RGB ray
-    tree in one scan (most slots are dead for most rays). Not on a GPU, where the
-    replay is one wide program and each batch would be kernels of their own."""
+    """The batch of rays in which `_replay` shades the secondary rays of the ray tree,
+    only those alive (`KernelOptions.replay_gather`), or 0: on "fused", for an RGB ray
+    tree (most of its rays are dead for most pixels). Not on a GPU, where the replay is
+    one wide program and each batch would be kernels of their own."""
     tree = ray_tree(scene, settings)
-    if (settings.recursion == "scan" and tree.depth > 0 and tree.wavelengths == 0
-            and resolve_backend(settings.backend) == "fused"):
+    if tree.depth > 0 and tree.wavelengths == 0 and resolve_backend(settings.backend) == "fused":
         return settings.kernel.replay_gather
     return 0
 

@@ -102,11 +102,12 @@ class KernelOptions:
                          compiled its forward in 347 s plain (4.4 ms a render at
                          512×512) against 111 s in phases (4.5 ms).
       replay_gather      rays per batch in which the replay of a "fused" gradient
-                         (`render._replay`) shades a slot of a ray tree in one scan
-                         (`recursion = "scan"`, RGB), and only the batches that hold
-                         rays alive in the slot (`march.tape._gathered`); 0: every
-                         slot for every ray. The showcase's value_and_grad at 64×36 on
-                         2 CPU cores: 2.46× its forward with 0, 1.5× with 128–512.
+                         (`render._replay`) shades the secondary rays of an RGB ray
+                         tree (a level of it, or a slot with `recursion = "scan"`),
+                         only the batches that hold rays alive there
+                         (`march.tape._gathered`); 0: every ray of the tree for every
+                         pixel. The showcase's value_and_grad at 64×36 on 2 CPU cores:
+                         2.46× its forward with 0, 1.5× with 128–512.
       xla                the XLA compiler options of every backend's render program
                          (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
                          (on a CPU: the legacy loop emitter instead of XLA's MLIR

@@ -683,21 +683,22 @@ def test_replay_image_equals_the_record(variant):
         assert np.max(np.abs(a - b)) <= tol * max(1.0, np.max(np.abs(a))), name
 
 
-def test_replay_shades_a_slot_only_for_its_live_rays():
-    """On "fused", the replay of a scan ray tree shades a slot only in the batches of rays
-    that hold a ray alive in it (`tape._gathered`; its program: tests/test_tape.py),
-    where without gathering (`replay_gather = 0`) every slot is shaded for every ray:
-    the gradients are the same (float64; the values:
-    test_replay_image_equals_the_record[scan])."""
+@pytest.mark.parametrize("recursion", ["unrolled", pytest.param("scan", marks=pytest.mark.slow)])
+def test_replay_shades_only_the_live_rays_of_the_tree(recursion):
+    """On "fused", the replay shades the secondary rays of the ray tree (a level, or a
+    slot of the scan tree) only in the batches of rays that hold a live one
+    (`tape._gathered`; its program: tests/test_tape.py), where without gathering
+    (`replay_gather = 0`) every ray of the tree is shaded for every pixel: the
+    gradients are the same (float64; the values: test_replay_image_equals_the_record)."""
     from jaxrt.render import _replay_gathers
 
     scene, camera, settings = _replay_scene()
     scene = eqx.tree_at(lambda s: s.heightfields, scene, [])  # a smaller program
-    settings = settings.replace(backend="fused", recursion="scan", shadows="hard")  # 3 slots
+    settings = settings.replace(backend="fused", recursion=recursion, shadows="hard")  # 3 rays
     plain = settings.replace(kernel=jr.KernelOptions(replay_gather=0))
     gathered = settings.replace(kernel=jr.KernelOptions(replay_gather=16))
     assert _replay_gathers(gathered, scene) == 16 and _replay_gathers(plain, scene) == 0
-    assert _replay_gathers(gathered.replace(recursion="unrolled"), scene) == 0
+    assert _replay_gathers(gathered.replace(max_depth=0), scene) == 0
     assert _replay_gathers(gathered.replace(backend="jax"), scene) == 0
 
     grads = {}

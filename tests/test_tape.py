@@ -1,6 +1,7 @@
-"""The tape's gathered `cond` (`jaxrt.march.tape._gathered`): a replayed branch evaluated
-only for the rays of a block where its predicate holds, in batches, against the same
-branch evaluated for every ray (values and gradients, float64)."""
+"""The tape's gathered `cond` and `vmap` (`jaxrt.march.tape._gathered`): a replayed
+branch evaluated only for the rays of a block (or their elements) where its predicate
+holds, in batches, against the same branch evaluated for every ray (values and
+gradients, float64)."""
 
 import jax
 import jax.numpy as jnp
@@ -62,6 +63,45 @@ def test_gathered_cond_equals_the_branch_for_every_ray(n, gather, pattern):
     expected = np.where(np.asarray(live), np.sin(1.3 * np.asarray(x)) * np.asarray(entries)
                         - 0.4 * np.asarray(x) ** 2, 0.0)
     np.testing.assert_allclose(np.asarray(out["y"]), expected, rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("n, m, gather", [(10, 3, 4), (7, 4, 32), (5, 2, 1)])
+def test_gathered_vmap_equals_the_function_of_every_element(n, m, gather):
+    """`tape.vmap(fn, gather=(live, dead))` over the m elements of each ray (a level of
+    the ray tree: a ray's children), replayed with only the live elements computed."""
+    rng = np.random.default_rng(n * m)
+    x = jnp.asarray(rng.uniform(-1.0, 1.0, (n, m)))
+    entries = jnp.asarray(rng.uniform(0.5, 2.0, (n, m)))
+    live = jnp.asarray(rng.uniform(size=(n, m)) < 0.4)
+    theta = jnp.asarray([0.7, 0.2])
+
+    def loss(theta, x, gather):
+        def fn(x, live):
+            t = tape.march(lambda: None)
+            return jnp.where(live, jnp.cos(theta[0] * x) * t + theta[1], 0.0)
+
+        def dead(x, live):
+            return jnp.zeros_like(x)
+
+        def one(x, live, entry):
+            with tape.replaying([[entry]]):  # the vmap: one entry, its march batched
+                return tape.vmap(fn, (lambda x, live: live, dead))(x, live)
+
+        if gather:
+            with tape.gathering(AXIS, gather):
+                y = jax.vmap(one, axis_name=AXIS)(x, live, entries)
+        else:
+            y = jax.vmap(one)(x, live, entries)
+        return jnp.sum(y * jnp.arange(1.0, y.size + 1.0).reshape(y.shape)), y
+
+    (ref, ref_y), ref_grad = jax.value_and_grad(loss, (0, 1), has_aux=True)(theta, x, 0)
+    (val, y), grad = jax.value_and_grad(loss, (0, 1), has_aux=True)(theta, x, gather)
+    expected = np.where(np.asarray(live), np.cos(0.7 * np.asarray(x)) * np.asarray(entries) + 0.2, 0.0)
+    np.testing.assert_allclose(np.asarray(ref_y), expected, rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(y), expected, rtol=1e-13)
+    np.testing.assert_allclose(float(val), float(ref), rtol=1e-14)
+    for a, b in zip(grad, ref_grad):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-15)
 
 
 def test_gathered_cond_branches_per_batch():

@@ -99,14 +99,22 @@ def march(fn, *args):
     return out
 
 
-def vmap(fn):
+def vmap(fn, gather=None):
     """`jax.vmap(fn)` (over axis 0 of every argument) whose marches are on the tape, as one
-    entry of batched sub-entries."""
+    entry of batched sub-entries. `gather`: (live, dead), with `live(*a)` a predicate of
+    one element and `dead(*a)` equal to `fn(*a)` (in every value the program reads) where
+    it is false, marching nothing; a replay under `gathering` then runs `fn` only for the
+    elements where `live` holds, in batches (`_gathered`), with `fn` under the same
+    promise as `cond`'s `gather`."""
 
     def batched(*args):
         tape = current()
         if tape is None:
             return jax.vmap(fn)(*args)
+        gathered = getattr(_STATE, "gather", None)
+        if tape.mode == "replay" and gather is not None and gathered is not None:
+            live, dead = gather
+            return _gathered(jax.vmap(live)(*args), fn, dead, args, tape.take(), *gathered)
         if tape.mode == "record":
             def inner(*a):
                 with recording() as sub:
@@ -219,7 +227,10 @@ def cond(pred, fn, dead, *operands, gather=False):
         entries = tape.take()
         gathered = getattr(_STATE, "gather", None)
         if gather and gathered is not None:
-            return _gathered(pred, fn, dead, operands, entries, *gathered)
+            one = lambda x: x[None]  # noqa: E731
+            out = _gathered(pred[None], fn, dead, jax.tree_util.tree_map(one, operands),
+                            jax.tree_util.tree_map(one, entries), *gathered)
+            return jax.tree_util.tree_map(lambda x: x[0], out)
 
         with replaying(entries):
             return fn(*operands)
@@ -249,27 +260,33 @@ def cond(pred, fn, dead, *operands, gather=False):
 
 
 def _gathered(pred, fn, dead, operands, entries, axis, rays):
-    """The replay of `cond(pred, fn, dead, *operands)` for one ray of a block vmapped over
-    `axis`, which computes `fn` only for the rays of the block where `pred` holds.
+    """The replay of `fn` over the m elements of one ray of a block vmapped over `axis`
+    (pred [m], operands and entries [m, ...]: a `cond`, m = 1, or a `vmap` of a ray's
+    children), which computes `fn` only for the elements of the block where `pred` holds.
 
     The block's predicates, operands and entries are gathered (`all_gather`: one array
-    over the block, not a per-ray value), the rays where `pred` holds are sorted first
-    (a stable sort keeps their order), and `lax.map` runs `fn` (vmapped, with the
-    entries replayed) over batches of `rays` of them; a batch past the last such ray
-    takes `dead` instead (a `lax.cond` on one scalar: a branch, not a select). Each ray
-    then reads its own result back. The gradient goes back the same way: the batches'
-    cotangents are scattered onto the block's rays (the transpose of `all_gather` and of
-    the gathers). `fn` runs under `jax.checkpoint`, so the reverse pass keeps a batch's
-    inputs instead of its intermediates (zeros for every skipped batch, else).
+    over the block, not a per-ray value) and flattened to its n·m elements, those where
+    `pred` holds are sorted first (a stable sort keeps their order), and `lax.map` runs
+    `fn` (vmapped, with the entries replayed) over batches of `rays` of them; a batch
+    past the last such element takes `dead` instead (a `lax.cond` on one scalar: a
+    branch, not a select). Each ray then reads its own m results back. The gradient goes
+    back the same way: the batches' cotangents are scattered onto the block's rays (the
+    transpose of `all_gather` and of the gathers). `fn` runs under `jax.checkpoint`, so
+    the reverse pass keeps a batch's inputs instead of its intermediates (zeros for
+    every skipped batch, else).
 
-    A ray tree in a scan (`integrator._trace_tree_scan`) shades each slot through this:
-    for most slots few rays of an image are alive (those that met a mirror or glass)."""
+    The ray tree (`integrator._trace_tree`, `_trace_tree_scan`) shades its secondary rays
+    through this: few rays of an image are alive in a slot of the tree (those that met
+    a mirror or glass)."""
     live, operands, entries = jax.lax.all_gather((pred, operands, entries), axis)
-    n = live.shape[0]
-    rays = min(rays, n)
-    batches = -(-n // rays)
-    order = jnp.argsort(~live, stable=True)  # the rays where pred holds first
-    order = jnp.pad(order, (0, batches * rays - n)).reshape(batches, rays)
+    n, m = live.shape
+    live, operands, entries = jax.tree_util.tree_map(
+        lambda x: x.reshape((n * m,) + x.shape[2:]), (live, operands, entries))
+    total = n * m
+    rays = min(rays, total)
+    batches = -(-total // rays)
+    order = jnp.argsort(~live, stable=True)  # the elements where pred holds first
+    order = jnp.pad(order, (0, batches * rays - total)).reshape(batches, rays)
     count = jnp.sum(live)
 
     @jax.checkpoint
@@ -289,6 +306,7 @@ def _gathered(pred, fn, dead, operands, entries, axis, rays):
         return jax.lax.cond(k * rays < count, run, skip, block)
 
     out = jax.lax.map(batch, (jnp.arange(batches), order))
-    position = jnp.zeros(n, order.dtype).at[order.reshape(-1)[:n]].set(jnp.arange(n, dtype=order.dtype))
-    mine = position[jax.lax.axis_index(axis)]
+    index = jnp.arange(total, dtype=order.dtype)
+    position = jnp.zeros(total, order.dtype).at[order.reshape(-1)[:total]].set(index)
+    mine = position.reshape(n, m)[jax.lax.axis_index(axis)]
     return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:])[mine], out)
