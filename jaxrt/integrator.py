@@ -581,8 +581,8 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     one ray per camera ray (a batch over the pixels under `render`'s vmap). On "fused"
     a block of rays skips a slot that is dead for all of them (`tape.cond`): most slots,
     where few pixels see a mirror or glass; the replay of its record shades a slot only
-    for the rays alive in it (`tape._gathered`; in RGB: the branch closes over the
-    scene and, spectral, over the sample's wavelength).
+    for the rays alive in it (`tape._gathered`; in RGB only: a spectral tree's branch
+    closes over the sample's wavelength).
     """
     b = len(tree.branches)
     sizes = tree.rays_per_level()

@@ -14,7 +14,9 @@ So the same Python program, run once recording (in the fast lane-wise kernels, w
 no gradient) and once replaying (plain vmapped `jnp` over the image, no loop left),
 computes the same values, and the replay is differentiable: everything outside the
 marches (Newton steps at the recorded roots, normals, shading, penumbrae at their
-recorded minima) carries gradients (`jaxrt.render`).
+recorded minima) carries gradients (`jaxrt.render`). A replay vmapped over a block of
+rays can skip what the record skipped for dead rays (`gathering`: the secondary rays
+of the ray tree).
 
 Marches inside `jax.vmap`, `lax.scan` or `lax.cond` write tracers of that
 transformation, which must leave it through its outputs: the program calls
@@ -202,9 +204,9 @@ def culls():
 
 def gathering(axis_name, rays):
     """Context: the program is replayed under `jax.vmap(..., axis_name=axis_name)` over
-    a block of rays, and a `cond` that allows it (`gather=True`) evaluates its branch
-    only for the rays of the block where its predicate holds (`_gathered`), in batches
-    of `rays`. The branch must close over nothing that varies between the block's rays
+    a block of rays, and a `cond` or `vmap` that allows it (`gather`) evaluates its
+    function only for the rays (elements) of the block where its predicate holds
+    (`_gathered`), in batches of `rays`. The branch must close over nothing that varies between the block's rays
     (the replay passes the scene unbatched), or every batch would be computed for every
     ray (the same values, at the cost of a vmap over the block)."""
     return _setting("gather", (axis_name, rays))
