@@ -472,6 +472,8 @@ def test_kernel_options_are_validated_like_other_settings():
         jr.KernelOptions(unroll=0)
     with pytest.raises(ValueError, match=r"RenderSettings.kernel.pallas_block"):
         jr.RenderSettings(kernel={"pallas_block": 4})
+    with pytest.raises(ValueError, match=r"RenderSettings.kernel.replay_gather = -1, expected"):
+        jr.RenderSettings(kernel={"replay_gather": -1})
     with pytest.raises(ValueError, match=r"RenderSettings.kernel.speed"):
         jr.RenderSettings(kernel={"speed": 11})
     with pytest.raises(ValueError, match=r"RenderSettings.split"):
