@@ -215,9 +215,8 @@ def _replay_gathers(settings, scene):
     tree (most of its rays are dead for most pixels). Not on a GPU, where the replay is
     one wide program and each batch would be kernels of their own."""
     tree = ray_tree(scene, settings)
-    if tree.depth > 0 and tree.wavelengths == 0 and resolve_backend(settings.backend) == "fused":
-        return settings.kernel.replay_gather
-    return 0
+    gathers = resolve_backend(settings.backend) == "fused" and tree.depth > 0
+    return settings.kernel.replay_gather if gathers and not tree.wavelengths else 0
 
 
 PER_SAMPLE_MAX = 4096

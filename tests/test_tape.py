@@ -96,7 +96,8 @@ def test_gathered_vmap_equals_the_function_of_every_element(n, m, gather):
 
     (ref, ref_y), ref_grad = jax.value_and_grad(loss, (0, 1), has_aux=True)(theta, x, 0)
     (val, y), grad = jax.value_and_grad(loss, (0, 1), has_aux=True)(theta, x, gather)
-    expected = np.where(np.asarray(live), np.cos(0.7 * np.asarray(x)) * np.asarray(entries) + 0.2, 0.0)
+    x_, entries_ = np.asarray(x), np.asarray(entries)
+    expected = np.where(np.asarray(live), np.cos(0.7 * x_) * entries_ + 0.2, 0.0)
     np.testing.assert_allclose(np.asarray(ref_y), expected, rtol=1e-13)
     np.testing.assert_allclose(np.asarray(y), expected, rtol=1e-13)
     np.testing.assert_allclose(float(val), float(ref), rtol=1e-14)

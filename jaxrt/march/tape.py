@@ -206,9 +206,10 @@ def gathering(axis_name, rays):
     """Context: the program is replayed under `jax.vmap(..., axis_name=axis_name)` over
     a block of rays, and a `cond` or `vmap` that allows it (`gather`) evaluates its
     function only for the rays (elements) of the block where its predicate holds
-    (`_gathered`), in batches of `rays`. The branch must close over nothing that varies between the block's rays
-    (the replay passes the scene unbatched), or every batch would be computed for every
-    ray (the same values, at the cost of a vmap over the block)."""
+    (`_gathered`), in batches of `rays`. The function must close over nothing that
+    varies between the block's rays (the replay passes the scene unbatched), or every
+    batch would be computed for every ray (the same values, at the cost of a vmap over
+    the block)."""
     return _setting("gather", (axis_name, rays))
 
 
