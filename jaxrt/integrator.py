@@ -7,9 +7,11 @@
                          + c_trans · trace(refracted ray)     if hit is transmissive
         else:    color = background
 
-The recursion is unrolled in Python to `settings.max_depth`: level k of the ray tree is
-one batch of rays (vmapped), each with a weight (the product of the c_refl/c_trans
-along its path), traced and shaded together; level k + 1 holds their children. The tree
+With `recursion = "unrolled"` (the default on a GPU) the recursion is unrolled in Python
+to `settings.max_depth`: level k of the ray tree is one batch of rays (vmapped), each
+with a weight (the product of the c_refl/c_trans along its path), traced and shaded
+together; level k + 1 holds their children. With "scan" (the default elsewhere,
+`_trace_tree_scan`) the same tree is one `lax.scan` over its slots. The tree
 is static and has only the branches that the scene's materials can produce
 (`ray_tree`): no transmissive material, no refracted rays (one ray per level); no
 reflective or transmissive material, no secondary level at all, whatever max_depth;
@@ -542,7 +544,7 @@ def _offset_absorption(sigma, origin, p, direction):
 def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):
     """Radiance added by each level [depth + 1, channels] of one camera ray's tree, and
     the AOVs of its first hit."""
-    if settings.recursion == "scan" and tree.depth > 0:
+    if settings.ray_tree_form() == "scan" and tree.depth > 0:
         return _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour,
                                 channels, wavelength)
     rays = jax.tree_util.tree_map(lambda x: x[None], camera_ray(origin, direction, cone, channels))
@@ -570,8 +572,8 @@ def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels
 
 
 def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, channels, wavelength):
-    """`_trace_tree` as one `lax.scan` over the slots of the tree (settings.recursion =
-    "scan").
+    """`_trace_tree` as one `lax.scan` over the slots of the tree
+    (`settings.ray_tree_form()` = "scan", the default on a CPU).
 
     The tree is stored in heap order: slot 0 is the camera ray and the b children of
     slot i are slots b·i + 1 … b·i + b, so level k occupies slots Σ_{j<k} b^j onwards

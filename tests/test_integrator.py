@@ -126,10 +126,11 @@ SETTINGS64 = jr.RenderSettings(dtype="float64", max_steps=1024)
 
 @functools.lru_cache(maxsize=None)
 def whitted_levels():
-    """Per-level radiance of every pixel [H·W, 4, 3] at max_depth 3 (one program)."""
+    """Per-level radiance of every pixel [H·W, 4, 3] at max_depth 3 (one program, the
+    levels unrolled; `test_scan_and_unrolled_recursion_agree` holds the scan to it)."""
     scene = whitted_scene()
     o, d, cone = camera_rays(CAMERA)
-    settings = SETTINGS64.replace(max_depth=3)
+    settings = SETTINGS64.replace(max_depth=3, recursion="unrolled")
     levels = jax.jit(jax.vmap(lambda o, d, c: integrator.trace_levels(scene, o, d, c, settings)[0]))
     return np.asarray(levels(o, d, cone)), np.asarray(o), np.asarray(d)
 
@@ -215,20 +216,20 @@ def test_diffuse_scene_traces_no_secondary_rays_whatever_max_depth():
 
 def test_mirror_scene_traces_one_ray_per_level():
     scene = scene_with(jr.bsdf.Mirror(), lights=1)
-    loops = one_ray_program(scene, jr.RenderSettings(max_depth=3))
+    loops = one_ray_program(scene, jr.RenderSettings(max_depth=3, recursion="unrolled"))
     assert loops == [(1,), (1,)] * 4  # per level: the ray and its shadow ray
 
 
 def test_glass_scene_traces_both_branches():
     scene = scene_with(jr.bsdf.Dielectric(ETA), lights=1)
-    loops = one_ray_program(scene, jr.RenderSettings(max_depth=3))
+    loops = one_ray_program(scene, jr.RenderSettings(max_depth=3, recursion="unrolled"))
     assert loops == [(1,), (1,), (2,), (2,), (4,), (4,), (8,), (8,)]
     # Without lights (shadows) only the rays: 1 + 2 + 4 + 8.
     dark = jr.Scene(surface=scene.surface, materials=scene.materials)
-    assert one_ray_program(dark, jr.RenderSettings(max_depth=3)) == [(1,), (2,), (4,), (8,)]
+    assert one_ray_program(dark, jr.RenderSettings(max_depth=3, recursion="unrolled")) == [(1,), (2,), (4,), (8,)]
     # The notes' opaque Whitted material reflects only: no refraction rays.
     opaque = scene_with(jr.bsdf.Whitted(base=jr.bsdf.Lambert(0.5), c_refl=0.5), lights=1)
-    assert one_ray_program(opaque, jr.RenderSettings(max_depth=2)) == [(1,), (1,)] * 3
+    assert one_ray_program(opaque, jr.RenderSettings(max_depth=2, recursion="unrolled")) == [(1,), (1,)] * 3
 
 
 def test_scan_recursion_compiles_one_shading_step_whatever_the_depth():
@@ -239,6 +240,16 @@ def test_scan_recursion_compiles_one_shading_step_whatever_the_depth():
         assert one_ray_program(scene, settings) == [(), ()]
     diffuse = scene_with(jr.bsdf.Lambert(0.8), lights=1)
     assert one_ray_program(diffuse, jr.RenderSettings(max_depth=8, recursion="scan")) == [(1,), (1,)]
+
+
+def test_auto_recursion_is_the_scan_on_a_cpu_and_unrolled_on_a_gpu():
+    scene = scene_with(jr.bsdf.Dielectric(ETA), lights=1)
+    settings = jr.RenderSettings(max_depth=3)
+    assert settings.recursion == "auto"
+    form = "unrolled" if jax.default_backend() == "gpu" else "scan"
+    assert settings.ray_tree_form() == form
+    assert one_ray_program(scene, settings) == one_ray_program(scene, settings.replace(recursion=form))
+    assert jr.RenderSettings(recursion="unrolled").ray_tree_form() == "unrolled"
 
 
 def test_scan_and_unrolled_recursion_agree():
@@ -303,7 +314,7 @@ def test_scan_and_unrolled_recursion_have_the_same_gradients():
 def test_only_dispersive_scenes_trace_wavelengths():
     glass = scene_with(jr.bsdf.Dielectric(ETA), lights=0)
     prism = scene_with(jr.bsdf.Dielectric(spectral.BK7), lights=0)
-    settings = jr.RenderSettings(max_depth=1, wavelengths=8)
+    settings = jr.RenderSettings(max_depth=1, wavelengths=8, recursion="unrolled")
     assert one_ray_program(glass, settings) == [(1,), (2,)]           # RGB, 8 ignored
     # 8 wavelengths from the first bounce on; the camera ray does not depend on the
     # wavelength, so it is traced once.
