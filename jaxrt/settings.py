@@ -68,10 +68,12 @@ class KernelOptions:
                          times the rays of the batched levels of a ray tree; on "fused"
                          an operation on the scene's values alone counts once) with
                          "jax": their compile time grows with it, Triton's faster than
-                         linearly. Counted as Pallas does, the Warp scene has 3.1k lane
-                         operations (Pallas compiles it in 3 s on an H200), the showcase
-                         38k (Pallas: 304 s), the glass scene 671k at max_depth 6 with
-                         an unrolled tree, 10.5k with its file's recursion = "scan".
+                         linearly. Counted as Pallas does (every scan unrolled), the
+                         Warp scene has 3.2k lane operations (Pallas compiles it in 3 s
+                         on an H200), 8 spheres on a plane 3.8k, 64 spheres 14.7k
+                         (Pallas: over 5 minutes on an H100; "jax" 2.6 s), the showcase
+                         136k (38k counted with its unrolled tree and each scan once:
+                         Pallas 304 s), the glass scene 833k at max_depth 6.
                          Counted as "fused" does (phases): Warp 2.2k, showcase 13k
                          ("fused": 33 s on 2 CPU cores), glass 6.3k ("fused": 20 s at
                          16×12).

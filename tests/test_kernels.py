@@ -1,6 +1,8 @@
 """jaxrt.kernels: the lane-wise (fused, Pallas) evaluation computes the same function as
 vmap, and the fused render backends give the same images and gradients as "jax"."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -340,6 +342,44 @@ def test_program_size_counts_shared_values_once_and_per_ray_values_per_element()
         closed = jax.make_jaxpr(fn)(jnp.zeros(n), jnp.zeros(()))  # no weak types: no casts
         assert program_size(closed.jaxpr, [False, True]) == 2 + 2 * n + 2 + 3, n
         assert program_size(closed.jaxpr) == 4 * n + 2 + 3, n  # all inputs per ray
+        # Unrolled (Pallas), the scan's body counts once per row.
+        assert program_size(closed.jaxpr, unrolled_scans=True) == 4 * n + 2 * n + 3, n
+
+
+def test_auto_counts_a_stacked_union_per_child_for_pallas(monkeypatch):
+    """A stacked union is one scan: the "fused" count does not grow with its children,
+    the Pallas count (which unrolls it) does, and 64 spheres exceed "auto"'s Pallas limit
+    (Triton compiled them for over 5 minutes on an H100)."""
+    from jaxrt.kernels import fused
+
+    sizes = {}
+
+    def spy(closed, backend):
+        sizes[backend] = n = lane_ops(closed, backend)
+        return n
+
+    lane_ops = fused._lane_ops
+    monkeypatch.setattr(fused, "_lane_ops", spy)
+    camera = jr.PerspectiveCamera(eye=(0.0, 3.0, -6.0), target=(0.0, 0.0, 0.0), width=4, height=4)
+    counts = {}
+    for n in (8, 64):
+        spheres = [jr.sdf.Translate(jr.sdf.Sphere(0.3, material=0), offset=(0.7 * i, 0.3, 0.0))
+                   for i in range(n)]
+        scene = jr.Scene(jr.sdf.Union(*spheres, jr.sdf.Plane((0.0, 1.0, 0.0), 0.0, material=0)),
+                         [jr.bsdf.Lambert(0.5)], [jr.PointLight((2.0, 6.0, -3.0), (9.0,) * 3)])
+        for seed, backend in enumerate(("fused", "pallas")):
+            monkeypatch.setattr(fused, "resolve_backend", lambda b, to=backend: to)
+            # a seed per backend: settings of their own, so the render is traced anew
+            settings = jr.RenderSettings(backend="auto", max_depth=0, aovs=(), seed=seed)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # Pallas on a CPU falls back
+                jax.eval_shape(lambda s, c: jr.render(s, c, settings).rgb, scene, camera)
+            counts[n, backend] = sizes[backend]
+    assert counts[8, "fused"] == counts[64, "fused"], counts
+    per_child = (counts[64, "pallas"] - counts[8, "pallas"]) / 56
+    assert per_child > 50, counts
+    limit = jr.RenderSettings().kernel.auto_max_lane_ops_pallas
+    assert counts[8, "pallas"] < limit < counts[64, "pallas"], counts
 
 
 def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly():

@@ -198,10 +198,14 @@ def _lane_ops(closed, backend):
     values, then the sample's two coordinates). On "fused" an operation on the scene's
     values alone counts once (lanes compute it once per tile, and scans stay loops), so a
     stacked group's rows do not count; Pallas unrolls scans, so there every input counts
-    per element, and a larger group is a larger program."""
+    per element and a scan's body once per iteration: a larger group is a larger program
+    (64 stacked spheres on a plane: 3.7k lane operations with each body once, 14.7k
+    unrolled; Pallas compiled their render for over 5 minutes on an H100, "jax" in
+    2.6 s)."""
     n = len(closed.jaxpr.invars)
-    per_ray = [backend != "fused"] * (n - 2) + [True, True]
-    return program_size(closed.jaxpr, per_ray)
+    unrolled = backend != "fused"
+    per_ray = [unrolled] * (n - 2) + [True, True]
+    return program_size(closed.jaxpr, per_ray, unrolled_scans=unrolled)
 
 
 # ----------------------------------------------------------------- "fused": XLA tiles

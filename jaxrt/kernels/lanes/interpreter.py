@@ -175,7 +175,7 @@ def _param_table(args, param_pos):
     return {dt: ps[0] if len(ps) == 1 else jnp.concatenate(ps) for dt, ps in parts.items()}
 
 
-def program_size(jaxpr, per_ray=None):
+def program_size(jaxpr, per_ray=None, unrolled_scans=False):
     """Lane operations of a one-ray program: its equations (those of loop bodies and
     calls once), an equation that reads a per-ray value counted once per element of its
     result, as `eval_lanes` scalarises them (a batch of 2^k rays in a ray tree: 2^k lanes
@@ -187,11 +187,15 @@ def program_size(jaxpr, per_ray=None):
       jaxpr: the program (a Jaxpr).
       per_ray: one bool per input of `jaxpr`, true for a value that varies from ray to
         ray (default: all of them).
+      unrolled_scans: count a scan's body once per iteration, as `eval_lanes` without
+        `roll_scans` (Pallas) unrolls it: a stacked union of n children is n copies of
+        its child at every site that evaluates the SDF.
     """
-    return _size(jaxpr, [True] * len(jaxpr.invars) if per_ray is None else list(per_ray))
+    per_ray = [True] * len(jaxpr.invars) if per_ray is None else list(per_ray)
+    return _size(jaxpr, per_ray, unrolled_scans)
 
 
-def _size(jaxpr, per_ray):
+def _size(jaxpr, per_ray, unrolled_scans=False):
     """Lane operations of `jaxpr` whose inputs are per ray where `per_ray` says
     (`program_size`)."""
     varying = {v: f for v, f in zip(jaxpr.invars, per_ray)}
@@ -205,8 +209,9 @@ def _size(jaxpr, per_ray):
         any_ray = any(flags)
         shape = getattr(eqn.outvars[0].aval, "shape", ()) if eqn.outvars else ()
         total += max(1, int(np.prod(shape))) if any_ray else 1
+        copies = eqn.params["length"] if unrolled_scans and eqn.primitive.name == "scan" else 1
         for sub, sub_flags in _bodies(eqn, flags):
-            total += _size(sub, sub_flags)
+            total += copies * _size(sub, sub_flags, unrolled_scans)
         for v in eqn.outvars:
             varying[v] = any_ray
     return total
