@@ -442,10 +442,11 @@ class RenderSettings:
         """How the ray tree is compiled: `recursion`, with "auto" → "unrolled" on a GPU
         and "scan" elsewhere. Read at trace time (the platform is part of every jit cache
         key). On 2 CPU cores "scan" compiles and renders faster on every backend: the
-        showcase on "fused" at 64×36 compiled in 33 s and rendered in 0.13 s against
-        54 s and 1.45 s unrolled (a tile of rays skips the slots dead in all of them),
-        its value_and_grad in 99 s and 0.19 s against 176 s and 1.49 s; the glass scene
-        (depth 6, 160×120) on "jax" in 10.8 s and 9.5 s against 49.3 s and 18.2 s. On
+        showcase on "fused" at 64×36, max_steps 64, in one run, compiled in 28 s and
+        rendered in 85 ms against 53 s and 1025 ms unrolled (a tile of rays skips the
+        slots dead in all of them), its value_and_grad in 73 s and 126 ms against 148 s
+        and 1042 ms; the glass scene (depth 6, 160×120) on "jax" in 10.8 s and 9.5 s
+        against 49.3 s and 18.2 s. On
         an H200 "unrolled" renders faster (glass scene 139 ms against 542 ms; the
         showcase's gradient 152 ms against 215 ms on an H100) but compiles for longer
         (67.7 s against 6.4 s): a short session on a GPU may ask for "scan"."""
