@@ -412,6 +412,14 @@ def camera_ray(origin, direction, cone=None, channels=3):
                jnp.ones((), bool))
 
 
+def aovs_of(dtype):
+    """The AOVs of one `shade_ray` as shapes: every AOV is of the ray's dtype, the depth,
+    step count and coverage scalars, the normal and albedo 3-vectors."""
+    scalar, vector = jax.ShapeDtypeStruct((), dtype), jax.ShapeDtypeStruct((3,), dtype)
+    return {"depth": scalar, "normal": vector, "albedo": vector, "steps": scalar,
+            "coverage": scalar}
+
+
 class Shaded(NamedTuple):
     """What `shade_ray` returns for one ray.
 
@@ -487,9 +495,10 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
         "depth": hit.t,
         "normal": jnp.where(found, n, zero3),
         "albedo": jnp.where(found, albedo, zero3),
-        "steps": hit.steps.astype(dtype),
-        "coverage": found.astype(dtype),
+        "steps": hit.steps,
+        "coverage": found,
     }
+    aovs = {k: jnp.asarray(v, dtype) for k, v in aovs.items()}  # as `aovs_of` says
     children = {}
     if spawning:
         children = _spawn(scene, settings, tree, colour, wavelength, ray, hit, found, p,
@@ -558,7 +567,7 @@ def _trace_tree(scene, origin, direction, cone, settings, tree, colour, channels
 
         gather = None
         if level > 0 and wavelength is None:  # a replay shades the live rays alone
-            gather = (lambda ray: ray.alive, _dead_shade(shade, tree, spawn))
+            gather = (lambda ray: ray.alive, _dead_shade(tree, spawn))
         out = tape.vmap(shade, gather)(rays)
         levels.append(jnp.sum(out.radiance, axis=0))
         if level == 0:
@@ -598,7 +607,7 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     def shade(ray):
         return shade_ray(scene, ray, settings, tree, colour, wavelength, True)
 
-    dead = _dead_shade(shade, tree)
+    dead = _dead_shade(tree)
     aovs = dead(root).aovs
     levels = jnp.zeros((len(sizes), channels), origin.dtype)
 
@@ -632,22 +641,16 @@ def _trace_tree_scan(scene, origin, direction, cone, settings, tree, colour, cha
     return levels, aovs
 
 
-def _dead_shade(shade, tree, spawn=True):
-    """`dead(ray)`: what `shade` (`shade_ray`) gives a dead ray (no radiance, dead
-    children, zero AOVs), without shading it. The children keep the ray's own (unit)
-    direction, so they stay finite. The AOVs' shapes come from an abstract evaluation
-    of `shade`, at the first call."""
-    shapes = []
+def _dead_shade(tree, spawn=True):
+    """`dead(ray)`: what `shade_ray` gives a dead ray (no radiance, dead children, zero
+    AOVs), without shading it. The children keep the ray's own (unit) direction, so they
+    stay finite."""
 
     def dead(ray):
-        if not shapes:
-            with tape.off():  # an abstract evaluation: its marches are not the program's
-                shapes.append(jax.eval_shape(lambda r: shade(r).aovs, ray))
-        aov_shapes = shapes[0]
         weight = jnp.zeros_like(ray.weight)
         child = Ray(ray.origin, ray.direction, ray.cone, weight, ray.sigma, jnp.zeros((), bool))
-        return Shaded(weight, {name: child for name in tree.branches} if spawn else {},
-                      jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), aov_shapes))
+        aovs = {k: jnp.zeros(a.shape, a.dtype) for k, a in aovs_of(ray.origin.dtype).items()}
+        return Shaded(weight, {name: child for name in tree.branches} if spawn else {}, aovs)
 
     return dead
 
