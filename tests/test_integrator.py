@@ -222,14 +222,15 @@ def test_mirror_scene_traces_one_ray_per_level():
 
 def test_glass_scene_traces_both_branches():
     scene = scene_with(jr.bsdf.Dielectric(ETA), lights=1)
-    loops = one_ray_program(scene, jr.RenderSettings(max_depth=3, recursion="unrolled"))
+    unrolled = jr.RenderSettings(max_depth=3, recursion="unrolled")
+    loops = one_ray_program(scene, unrolled)
     assert loops == [(1,), (1,), (2,), (2,), (4,), (4,), (8,), (8,)]
     # Without lights (shadows) only the rays: 1 + 2 + 4 + 8.
     dark = jr.Scene(surface=scene.surface, materials=scene.materials)
-    assert one_ray_program(dark, jr.RenderSettings(max_depth=3, recursion="unrolled")) == [(1,), (2,), (4,), (8,)]
+    assert one_ray_program(dark, unrolled) == [(1,), (2,), (4,), (8,)]
     # The notes' opaque Whitted material reflects only: no refraction rays.
     opaque = scene_with(jr.bsdf.Whitted(base=jr.bsdf.Lambert(0.5), c_refl=0.5), lights=1)
-    assert one_ray_program(opaque, jr.RenderSettings(max_depth=2, recursion="unrolled")) == [(1,), (1,)] * 3
+    assert one_ray_program(opaque, unrolled.replace(max_depth=2)) == [(1,), (1,)] * 3
 
 
 def test_scan_recursion_compiles_one_shading_step_whatever_the_depth():
@@ -248,7 +249,8 @@ def test_auto_recursion_is_the_scan_on_a_cpu_and_unrolled_on_a_gpu():
     assert settings.recursion == "auto"
     form = "unrolled" if jax.default_backend() == "gpu" else "scan"
     assert settings.ray_tree_form() == form
-    assert one_ray_program(scene, settings) == one_ray_program(scene, settings.replace(recursion=form))
+    same = settings.replace(recursion=form)
+    assert one_ray_program(scene, settings) == one_ray_program(scene, same)
     assert jr.RenderSettings(recursion="unrolled").ray_tree_form() == "unrolled"
 
 
