@@ -355,8 +355,8 @@ def test_auto_counts_a_stacked_union_per_child_for_pallas(monkeypatch):
     sizes = {}
 
     def spy(closed, backend):
-        sizes[backend] = n = lane_ops(closed, backend)
-        return n
+        sizes[backend] = size = lane_ops(closed, backend)
+        return size
 
     lane_ops = fused._lane_ops
     monkeypatch.setattr(fused, "_lane_ops", spy)
