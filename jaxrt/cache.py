@@ -10,6 +10,7 @@ variable), else `$XDG_CACHE_HOME/jaxrt/jax` (`~/.cache/jaxrt/jax` without XDG_CA
 Off: `JAXRT_NO_CACHE=1` in the environment (or `jaxrt render --no-cache`).
 """
 
+import functools
 import os
 from pathlib import Path
 
@@ -64,10 +65,28 @@ def enable_compilation_cache(path=None, min_compile_seconds=MIN_COMPILE_SECONDS)
 PROGRAMS = "programs"
 
 
+@functools.cache
+def source_digest():
+    """A hash of jaxrt's own source (every `.py` file of the package, by path and bytes).
+
+    The version number alone would keep serving a program traced by older code to a
+    developer who edits jaxrt between two renders (an editable install keeps its version).
+    """
+    import hashlib
+
+    package = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(package.rglob("*.py")):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
 def program_key(scene, camera, settings):
     """A key of everything a render program depends on but its float values: the
     structure of scene and camera (their tree, with every static field, and each leaf's
-    shape and dtype), the settings, the jaxrt and JAX versions and the default backend."""
+    shape and dtype), the settings, jaxrt's version and source (`source_digest`), JAX's
+    version and the default backend."""
     import hashlib
 
     import jax
@@ -76,8 +95,8 @@ def program_key(scene, camera, settings):
 
     leaves, treedef = jax.tree_util.tree_flatten((scene, camera))
     shapes = [(getattr(x, "shape", None), str(getattr(x, "dtype", type(x)))) for x in leaves]
-    text = repr((str(treedef), shapes, repr(settings), __version__, jax.__version__,
-                 jax.default_backend()))
+    text = repr((str(treedef), shapes, repr(settings), __version__, source_digest(),
+                 jax.__version__, jax.default_backend()))
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 

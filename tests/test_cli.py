@@ -327,3 +327,17 @@ def test_second_render_reuses_the_cached_program(tmp_path, capsys, monkeypatch):
     reference = __import__("jaxrt").render(bigger, camera, settings)
     np.testing.assert_allclose(np.asarray(second(bigger, camera).rgb), np.asarray(reference.rgb), atol=1e-6)
 
+
+
+def test_the_program_key_follows_jaxrts_source(tmp_path, monkeypatch):
+    """A program traced by other jaxrt code is not served again: the key holds a hash of
+    the package's source, which an edit changes (the version number need not)."""
+    import jaxrt.cache as cache
+
+    scene, camera, settings = __import__("jaxrt").config.load(_ball(tmp_path))
+    key = cache.program_key(scene, camera, settings)
+    assert cache.program_key(scene, camera, settings) == key
+    digest = cache.source_digest()
+    assert len(digest) == 64 and digest == cache.source_digest()
+    monkeypatch.setattr(cache, "source_digest", lambda: "edited")
+    assert cache.program_key(scene, camera, settings) != key
