@@ -54,7 +54,8 @@ from .lights import shadow_ray
 from .march import SphereTracing, tape
 from .march.sphere import rounding_floor
 from .march.search import repeat
-from .trace import hit_epsilon, intersect_plane, normal_and_material, sphere_trace
+from .trace import (hit_epsilon, intersect_plane, normal_and_material, sphere_trace,
+                    value_and_gradient)
 from .vecmath import dot, safe_div, safe_norm, stop_gradient, to_local
 
 
@@ -130,7 +131,8 @@ def _settle(scene, which, x, target, steps):
     """`steps` Newton steps x ← x − (f(x) − target) ∇f / |∇f|² towards the level set
     f = target of surface `which` (no gradient): one loop, so that the program holds one
     copy of f and ∇f whatever `steps`."""
-    f_and_grad = jax.value_and_grad(lambda q: surface_distance(scene, which, q))
+    def f_and_grad(q):
+        return value_and_gradient(lambda x: surface_distance(scene, which, x), q)
 
     def body(_, x):
         f, g = f_and_grad(x)

@@ -57,6 +57,12 @@ class KernelOptions:
       pallas_uniforms    read the values shared by all rays (functions of the
                          parameters alone, outside loops) from a vector computed once
                          before the kernel (`lanes.Uniforms`), not in every thread.
+      pallas_scan_loops  keep a scan over the kernel's parameters (a stacked union's
+                         children, at least `lanes.control.LOADED_SCAN_MIN` of them) as
+                         one loop that loads iteration i's values
+                         (`lanes.control._scan_loaded`), not n copies of its body; the
+                         program's gradients of the SDF are then taken in forward mode
+                         (`trace.value_and_gradient`). False: every scan unrolled.
       pallas_fast_math   per-ray sqrt, rsqrt, division, exp, log and pow as PTX's
                          approximate instructions (what CUDA's --use_fast_math compiles;
                          pow of a negative base is NaN), division by shared values as a
@@ -136,6 +142,7 @@ class KernelOptions:
     compaction: int = 16
     pallas_fma: bool = True
     pallas_uniforms: bool = True
+    pallas_scan_loops: bool = True
     pallas_fast_math: bool = True
     auto_max_lane_ops_fused: int = 60_000
     auto_max_lane_ops_pallas: int = 20_000
@@ -162,7 +169,8 @@ class KernelOptions:
         need(_is_int(self.compaction) and self.compaction >= 1, "compaction", "an integer ≥ 1")
         need(_is_int(self.replay_gather) and self.replay_gather >= 0, "replay_gather",
              "an integer ≥ 0")
-        for name in ("materialize", "pallas_fma", "pallas_uniforms", "pallas_fast_math"):
+        for name in ("materialize", "pallas_fma", "pallas_uniforms", "pallas_scan_loops",
+                     "pallas_fast_math"):
             need(isinstance(getattr(self, name), bool), name, "true or false")
         for name in ("auto_max_lane_ops_fused", "auto_max_lane_ops_pallas", "plain_max_lane_ops"):
             need(_is_int(getattr(self, name)) and getattr(self, name) >= 0, name,

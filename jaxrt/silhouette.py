@@ -110,7 +110,7 @@ import jax.numpy as jnp
 from .march import SphereTracing, tape
 from .march.silhouette import (EDGE_OFFSET, GOLDEN_STEPS, ILLINOIS_STEPS, INSIDE_AIM,  # noqa: F401
                                PROJECT_STEPS, inner_hit, project_to_surface, refine_closest)
-from .trace import sphere_trace, stop_gradient
+from .trace import sphere_trace, stop_gradient, value_and_gradient
 from .vecmath import dot, normalize, safe_div, safe_norm
 
 def ramp(u):
@@ -149,7 +149,7 @@ def value_grad_hessian(sdf, p):
     sdf, p = stop_gradient((sdf, p))
 
     def value_and_grad(q):
-        f, g = jax.value_and_grad(lambda x: sdf(x))(q)
+        f, g = value_and_gradient(lambda x: sdf(x), q)
         return g, (f, g)
 
     hess, (f, grad) = jax.jacfwd(value_and_grad, has_aux=True)(p)
@@ -213,7 +213,7 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     # the direction of n* (on the edge itself either face's gradient may be taken).
     p_s = tape.march(project_to_surface, sdf, p_star, n)
     offset = jax.lax.stop_gradient(EDGE_OFFSET * (distance + 2.0 * radius))
-    f_s, grad_s = jax.value_and_grad(lambda q: sdf(q))(p_s + offset * n)
+    f_s, grad_s = value_and_gradient(lambda q: sdf(q), p_s + offset * n)
     grad_s = jax.lax.stop_gradient(grad_s)
     norm_s = jnp.sqrt(dot(grad_s, grad_s))
     ok_s = norm_s > 0.0

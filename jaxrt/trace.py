@@ -163,13 +163,39 @@ def polish_root(sdf, origin, direction, t, hit, settings):
     return newton_at(sdf, origin, direction, record["t"], record["slope"], record["f"])
 
 
+def value_and_gradient(f, p, has_aux=False):
+    """(f(p), ∇f(p)) of a scalar function of a point, as `jax.value_and_grad(f,
+    has_aux=has_aux)(p)` gives them (with `has_aux`, f returns (value, aux), and the
+    result is ((value, aux), ∇f)).
+
+    Reverse mode, except in a program traced for a Pallas kernel that keeps scans as
+    loops (`tape.forward_gradient()`): there forward mode, one JVP along each axis eₖ
+    (∂f/∂xₖ = ∇f·eₖ) under `vmap`. A reverse pass through a stacked union's scan
+    stacks one residual per child and reads them back in a second scan, which a Triton
+    kernel cannot hold as a loop; the JVPs carry their tangents through the one scan.
+    """
+    if not tape.forward_gradient():
+        return jax.value_and_grad(f, has_aux=has_aux)(p)
+    g = f if has_aux else (lambda q: (f(q), ()))
+
+    def along(e):
+        value_aux, (slope, _) = jax.jvp(g, (p,), (e,))
+        return value_aux, slope
+
+    basis = jnp.eye(p.shape[-1], dtype=p.dtype)
+    value_aux, grad = jax.vmap(along, out_axes=(None, 0))(basis)
+    return (value_aux if has_aux else value_aux[0]), grad
+
+
 def newton_march(sdf, origin, direction, t, hit, steps):
     """`steps` guarded Newton steps t ← t − f(o + t d) / (∇f · d) from t̂ (no gradient;
     the rule of `polish_root`). Returns {"t": the iterate from which the last kept step
     was taken (t̂ if none was), "slope": ∇f·d there (0 if none was kept, or the hit
     grazes there), "f": f there (0 if none was kept)}: `newton_at` of the three is the
     polished root."""
-    f_and_grad = jax.value_and_grad(lambda q: sdf(q))
+    def f_and_grad(q):
+        return value_and_gradient(lambda x: sdf(x), q)
+
     inf = jnp.asarray(jnp.inf, t.dtype)
     zero = jnp.zeros((), t.dtype)
 
@@ -237,7 +263,7 @@ def newton_step(sdf, origin, direction, t):
     Grazing hits (|∇f·d| ≤ GRAZING_COSINE·|∇f|) keep t̂, with a zero gradient.
     """
     t0 = jax.lax.stop_gradient(t)
-    f, grad = jax.value_and_grad(lambda q: sdf(q))(origin + t0 * direction)
+    f, grad = value_and_gradient(lambda q: sdf(q), origin + t0 * direction)
     slope, ok = _slope(grad, direction)
     return jnp.where(ok, t0 - safe_div(f, jnp.where(ok, slope, 1.0)), t0)
 
@@ -257,7 +283,8 @@ def _polish_optimistix(sdf, origin, direction, t, hit, steps):
     gradient, and the implicit adjoint never divides by a slope near 0.
     """
     t0 = jax.lax.stop_gradient(t)
-    grad = jax.grad(lambda q: sdf(q))(stop_gradient(origin) + t0 * stop_gradient(direction))
+    _, grad = value_and_gradient(lambda q: sdf(q),
+                                 stop_gradient(origin) + t0 * stop_gradient(direction))
     _, ok = _slope(grad, direction)
     ok = ok & hit
 
@@ -282,7 +309,7 @@ def surface_normal(sdf, p, settings):
     """
     h = settings.normal_epsilon
     if settings.normal_mode == "autodiff":
-        g = jax.grad(lambda q: sdf(q))(p)
+        _, g = value_and_gradient(lambda q: sdf(q), p)
     elif settings.normal_mode == "central":
         e = jnp.eye(3, dtype=p.dtype) * h
         g = jax.vmap(lambda ei: sdf(p + ei) - sdf(p - ei))(e)
@@ -297,7 +324,7 @@ def normal_and_material(sdf, p, settings):
     "autodiff" estimator both come from one evaluation of f (its gradient, and its
     material as an auxiliary output), so the program holds one copy of f for them."""
     if settings.normal_mode == "autodiff":
-        g, material = jax.grad(lambda q: sdf.eval(q), has_aux=True)(p)
+        (_, material), g = value_and_gradient(lambda q: sdf.eval(q), p, has_aux=True)
         return normalize(g), material
     return surface_normal(sdf, p, settings), sdf.eval(jax.lax.stop_gradient(p))[1]
 

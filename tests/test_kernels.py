@@ -342,20 +342,27 @@ def test_program_size_counts_shared_values_once_and_per_ray_values_per_element()
         closed = jax.make_jaxpr(fn)(jnp.zeros(n), jnp.zeros(()))  # no weak types: no casts
         assert program_size(closed.jaxpr, [False, True]) == 2 + 2 * n + 2 + 3, n
         assert program_size(closed.jaxpr) == 4 * n + 2 + 3, n  # all inputs per ray
-        # Unrolled (Pallas), the scan's body counts once per row.
+        # Unrolled (Pallas), the scan's body counts once per row ...
         assert program_size(closed.jaxpr, unrolled_scans=True) == 4 * n + 2 * n + 3, n
+        # ... unless Pallas keeps it as a loop that loads its shared rows: once.
+        loaded = program_size(closed.jaxpr, [False, True], unrolled_scans=True, loaded_scans=True)
+        assert loaded == 2 + 2 * n + 2 + 3, n
+        assert program_size(closed.jaxpr, unrolled_scans=True, loaded_scans=True) == \
+            4 * n + 2 * n + 3, n  # rows that vary per ray cannot be loaded
 
 
-def test_auto_counts_a_stacked_union_per_child_for_pallas(monkeypatch):
+def test_auto_counts_a_stacked_union_once_unless_pallas_unrolls_it(monkeypatch):
     """A stacked union is one scan: the "fused" count does not grow with its children,
-    the Pallas count (which unrolls it) does, and 128 spheres exceed "auto"'s Pallas
-    limit (64 compile in about a minute on an H100)."""
+    nor does the Pallas count while the kernel keeps the scan as a loop
+    (`pallas_scan_loops`, default). Unrolled, the Pallas count grows with every child,
+    and 128 spheres exceed "auto"'s Pallas limit (64 compiled in about a minute on an
+    H100)."""
     from jaxrt.kernels import fused
 
     sizes = {}
 
-    def spy(closed, backend):
-        sizes[backend] = size = lane_ops(closed, backend)
+    def spy(closed, backend, loops=False):
+        sizes[backend, loops] = size = lane_ops(closed, backend, loops)
         return size
 
     lane_ops = fused._lane_ops
@@ -367,19 +374,22 @@ def test_auto_counts_a_stacked_union_per_child_for_pallas(monkeypatch):
                    for i in range(n)]
         scene = jr.Scene(jr.sdf.Union(*spheres, jr.sdf.Plane((0.0, 1.0, 0.0), 0.0, material=0)),
                          [jr.bsdf.Lambert(0.5)], [jr.PointLight((2.0, 6.0, -3.0), (9.0,) * 3)])
-        for seed, backend in enumerate(("fused", "pallas")):
+        for seed, (backend, loops) in enumerate((("fused", True), ("pallas", True),
+                                                 ("pallas", False))):
             monkeypatch.setattr(fused, "resolve_backend", lambda b, to=backend: to)
-            # a seed per backend: settings of their own, so the render is traced anew
-            settings = jr.RenderSettings(backend="auto", max_depth=0, aovs=(), seed=seed)
+            # a seed per variant: settings of their own, so the render is traced anew
+            settings = jr.RenderSettings(backend="auto", max_depth=0, aovs=(), seed=seed,
+                                         kernel=jr.KernelOptions(pallas_scan_loops=loops))
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Pallas on a CPU falls back
                 jax.eval_shape(lambda s, c: jr.render(s, c, settings).rgb, scene, camera)
-            counts[n, backend] = sizes[backend]
-    assert counts[8, "fused"] == counts[128, "fused"], counts
-    per_child = (counts[128, "pallas"] - counts[8, "pallas"]) / 120
-    assert per_child > 50, counts
+            counts[n, backend, loops] = sizes[backend, loops and backend == "pallas"]
     limit = jr.RenderSettings().kernel.auto_max_lane_ops_pallas
-    assert counts[8, "pallas"] < limit < counts[128, "pallas"], counts
+    for variant in (("fused", True), ("pallas", True)):
+        assert counts[(8, *variant)] == counts[(128, *variant)] < limit, counts
+    per_child = (counts[128, "pallas", False] - counts[8, "pallas", False]) / 120
+    assert per_child > 50, counts
+    assert counts[8, "pallas", False] < limit < counts[128, "pallas", False], counts
 
 
 def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly():

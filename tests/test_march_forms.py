@@ -122,7 +122,8 @@ def _program_sizes(monkeypatch, settings, limit):
 
     def traced(*args):
         closed, out_shapes = trace(*args)
-        sizes.append(fused._lane_ops(closed, args[-1]))
+        *_, settings_, backend = args
+        sizes.append(fused._lane_ops(closed, backend, settings_.kernel.pallas_scan_loops))
         return closed, out_shapes
 
     monkeypatch.setattr(fused, "_trace_one", traced)

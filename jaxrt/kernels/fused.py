@@ -31,7 +31,8 @@ from jax import lax
 
 from ..march import form as march_form
 from ..march import tape
-from .lanes import Uniforms, Unsupported, eval_lanes, lanes_of, program_size, stack_lanes
+from .lanes import (Tables, Uniforms, Unsupported, eval_lanes, lanes_of, program_size,
+                    stack_lanes)
 
 __all__ = ["map_samples", "resolve_backend", "Unsupported", "pallas_block", "tile_shape"]
 
@@ -107,7 +108,7 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
         try:
-            size = _lane_ops(traced()[0], backend)
+            size = _lane_ops(traced()[0], backend, settings.kernel.pallas_scan_loops)
             limit = settings.kernel.auto_max_lane_ops(backend)
             if size > limit:
                 raise Unsupported(
@@ -180,20 +181,22 @@ def _trace_one(one, dyn, dtype, settings, backend):
     px = jax.ShapeDtypeStruct((), dtype)
     shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
 
+    loops = backend == "pallas" and settings.kernel.pallas_scan_loops
+
     def trace(form):  # a new function each time: make_jaxpr caches traces by function
-        with march_form.using(form), tape.lanes(backend):
+        with march_form.using(form), tape.lanes(backend), tape.forward_gradients(loops):
             return jax.make_jaxpr(lambda *a: one(*a), return_shape=True)(shapes, px, px)
 
     option, limit = settings.kernel.march_form, settings.kernel.plain_max_lane_ops
     closed, out_shapes = trace("phases" if option == "auto" else option)
-    if option == "auto" and _lane_ops(closed, backend) <= limit:
+    if option == "auto" and _lane_ops(closed, backend, loops) <= limit:
         plain = trace("plain")
-        if _lane_ops(plain[0], backend) <= limit:
+        if _lane_ops(plain[0], backend, loops) <= limit:
             closed, out_shapes = plain
     return closed, out_shapes
 
 
-def _lane_ops(closed, backend):
+def _lane_ops(closed, backend, loops=False):
     """`program_size` of a one-sample program of `_trace_one` (its inputs: the scene's
     values, then the sample's two coordinates). On "fused" an operation on the scene's
     values alone counts once (lanes compute it once per tile, and scans stay loops), so a
@@ -203,8 +206,8 @@ def _lane_ops(closed, backend):
     14.7k unrolled, which Pallas compiles in 66 s on an H100; 256 spheres: 52k)."""
     n = len(closed.jaxpr.invars)
     unrolled = backend != "fused"
-    per_ray = [unrolled] * (n - 2) + [True, True]
-    return program_size(closed.jaxpr, per_ray, unrolled_scans=unrolled)
+    per_ray = [unrolled and not loops] * (n - 2) + [True, True]
+    return program_size(closed.jaxpr, per_ray, unrolled_scans=unrolled, loaded_scans=loops)
 
 
 # ----------------------------------------------------------------- "fused": XLA tiles
@@ -328,24 +331,35 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
         ptx = {k: f for k, f in _ptx_ops(interpret).items() if opts.pallas_fma or k != "fma"}
     lane_options = dict(unroll=opts.pallas_unroll, fast_math=opts.pallas_fast_math,
                         unsupported=TRITON_UNSUPPORTED, bool_carries=True)
-
-    # the values shared by all rays, computed here (the lane program evaluated once on
-    # placeholder rays, whose work XLA then drops) and read by the kernel
-    recorded = None
-    if opts.pallas_uniforms and dtype == jnp.float32:
-        recorded = Uniforms()
-        placeholder = _lane(jnp.zeros((th, tw), dtype))
-        eval_lanes(closed, [lanes_of(x) for x in leaves] + [placeholder, placeholder],
-                   (th, tw), uniforms=recorded,
-                   ptx=None if ptx is None else {k: f for k, f in _ptx_ops(True).items() if k in ptx},
-                   **lane_options)
-
     # parameters: one vector of the float dtype (ints and bools stored exactly as floats),
     # then the shared values as 32-bit words
     offsets, k = [], 0
     for leaf in leaves:
         offsets.append(k)
         k += int(np.prod(leaf.shape))
+
+    def addressed(args):
+        """{id: (lane, ("p", position))} of the parameters' lanes (`eval_lanes`'s
+        `addresses`: scans over them stay loops), or None (scans unrolled)."""
+        if not opts.pallas_scan_loops:
+            return None
+        return {id(x): (x, ("p", off + j)) for a, off in zip(args, offsets)
+                for j, x in enumerate(a.reshape(-1)) if not isinstance(x, np.generic)}
+
+    # the values shared by all rays, computed here (the lane program evaluated once on
+    # placeholder rays, whose work XLA then drops) and read by the kernel; the same run
+    # collects the constant tables that the kernel's loops index
+    recorded = Uniforms() if opts.pallas_uniforms and dtype == jnp.float32 else None
+    tables = Tables(dtype) if opts.pallas_scan_loops else None
+    if recorded is not None or tables is not None:
+        placeholder = _lane(jnp.zeros((th, tw), dtype))
+        args = [lanes_of(x) for x in leaves]
+        eval_lanes(closed, args + [placeholder, placeholder],
+                   (th, tw), uniforms=recorded, addresses=addressed(args), tables=tables,
+                   ptx=None if ptx is None else {k: f for k, f in _ptx_ops(True).items() if k in ptx},
+                   **lane_options)
+        if tables is not None:
+            tables.frozen = True
     parts = [jnp.ravel(x).astype(dtype) for x in leaves]
     if centres is not None:  # the grid's offset in the image (exact as floats < 2^24)
         parts.append(jnp.stack([jnp.asarray(c).astype(dtype) for c in centres]))
@@ -354,6 +368,10 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
     if recorded is not None and recorded.values:
         parts += [_as_float32_word(v) for v in recorded.values]
         k += len(recorded.values)
+    cbase = k
+    if tables is not None and tables.arrays:
+        parts += [jnp.asarray(np.concatenate(tables.arrays))]
+        k += tables.size
     nparams = _pow2(k, 16)
     pvec = jnp.zeros((nparams,), dtype)
     if parts:
@@ -382,13 +400,21 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
                 v = p_ref[off + j_]
                 obj[idx] = v if leaf.dtype == dtype else v.astype(leaf.dtype)
             args.append(obj)
+        addresses = addressed(args)
         args += [_lane(px), _lane(py)]
         uniforms = None
         if recorded is not None:
             uniforms = Uniforms(read=lambda k_, dt: _from_float32_word(p_ref[ubase + k_], dt))
+
+        def load(space, position, dt):  # a loop's load of an address (`addressed`)
+            if space == "u":
+                return _from_float32_word(p_ref[ubase + position], dt)
+            v = p_ref[position + (cbase if space == "c" else 0)]
+            return v if v.dtype == dt else v.astype(dt)
+
         outs = eval_lanes(closed, args, (th, tw), any_lane=any_lane,
                           int_anchor=pl.program_id(0), ptx=ptx, uniforms=uniforms,
-                          **lane_options)
+                          addresses=addresses, load=load, tables=tables, **lane_options)
         if recorded is not None:
             uniforms.check(recorded)
         zero = px * 0  # outputs that are constants: lanes computed from a traced zero

@@ -182,6 +182,18 @@ def lane_backend():
     return getattr(_STATE, "lanes", None)
 
 
+def forward_gradients(on=True):
+    """Context: the program's gradients of the SDF are taken in forward mode
+    (`trace.value_and_gradient`): traced for a Pallas kernel whose scans stay loops
+    (`KernelOptions.pallas_scan_loops`)."""
+    return _setting("forward_gradients", on)
+
+
+def forward_gradient():
+    """Whether gradients of the SDF are taken in forward mode (`forward_gradients`)."""
+    return bool(getattr(_STATE, "forward_gradients", False))
+
+
 def skips_blocks():
     """Whether `cond` skips per block of rays: traced for "fused" (`lanes`)."""
     return lane_backend() == "fused"

@@ -43,8 +43,10 @@ The modules, one job each:
                   names, version-dependent parameters)
 """
 
+from .control import Tables as Tables
 from .gpu import Uniforms as Uniforms
 from .interpreter import eval_lanes as eval_lanes, program_size as program_size
 from .values import Unsupported as Unsupported, lanes_of as lanes_of, stack_lanes as stack_lanes
 
-__all__ = ["eval_lanes", "lanes_of", "program_size", "stack_lanes", "Uniforms", "Unsupported"]
+__all__ = ["eval_lanes", "lanes_of", "program_size", "stack_lanes", "Tables", "Uniforms",
+           "Unsupported"]

@@ -63,6 +63,36 @@ def _barrier(objs):
     return objs
 
 
+def _carries(avals, ctx):
+    """(pack, unpack) of a loop's state: `pack` holds every element of the carried
+    values (of `avals`) as a full lane of the block, bools as int32 unless
+    ctx.bool_carries (a Triton kernel carries predicates, which saves a conversion
+    each way per step); `unpack` gives the object arrays back."""
+    shapes = [a.shape for a in avals]
+    dtypes = [np.dtype(a.dtype) for a in avals]
+
+    def store_dtype(dt):
+        return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
+
+    def pack(objs):
+        return [_broadcast(_convert(x, store_dtype(dt), ctx), ctx.block, store_dtype(dt), ctx)
+                for obj, dt in zip(objs, dtypes) for x in obj.reshape(-1)]
+
+    def unpack(flat):
+        objs, k = [], 0
+        for shape, dt in zip(shapes, dtypes):
+            obj = _obj(shape)
+            ravel = obj.reshape(-1)
+            for i in range(ravel.size):
+                x = flat[k + i]
+                ravel[i] = (x != 0) if dt == np.dtype(bool) and x.dtype != np.dtype(bool) else x
+            objs.append(obj)
+            k += ravel.size
+        return objs
+
+    return pack, unpack
+
+
 def _while(eqn, ins, ctx):
     cn, bn, cond_j, body_j = while_parts(eqn.params)
     cconsts, bconsts = ins[:cn], ins[cn:cn + bn]
@@ -73,36 +103,9 @@ def _while(eqn, ins, ctx):
     init = [x for x, k in zip(init, keep) if k]
     avals = [v.aval for v, k in zip(eqn.outvars, keep) if k]
     block = ctx.block
-    # loop state: every lane of every carried value as a [block] array (bools as int32
-    # unless ctx.bool_carries: a Triton kernel carries predicates, which saves a
-    # conversion each way per step); in a compacted loop (`_compacted`) the block is
-    # the narrow one while its second body is traced
-    shapes = [a.shape for a in avals]
-    dtypes = [a.dtype for a in avals]
-    sizes = [int(np.prod(s)) for s in shapes]
-
-    def store_dtype(dt):
-        return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
-
-    def pack(objs):
-        flat = []
-        for obj, dt in zip(objs, dtypes):
-            for x in obj.reshape(-1):
-                flat.append(_broadcast(_convert(x, store_dtype(dt), ctx), ctx.block,
-                                       store_dtype(dt), ctx))
-        return flat
-
-    def unpack(flat):
-        objs, k = [], 0
-        for shape, dt, n in zip(shapes, dtypes, sizes):
-            obj = _obj(shape)
-            ravel = obj.reshape(-1)
-            for i in range(n):
-                x = flat[k + i]
-                ravel[i] = (x != 0) if dt == np.dtype(bool) and x.dtype != np.dtype(bool) else x
-            objs.append(obj)
-            k += n
-        return objs
+    # the loop state (`_carries`); in a compacted loop (`_compacted`) the block is the
+    # narrow one while its second body is traced
+    pack, unpack = _carries(avals, ctx)
 
     def cond_lanes(objs, consts=cconsts):
         # a batched while (vmap inside the one-ray program) has a predicate of shape S
@@ -288,6 +291,11 @@ def _scan(eqn, ins, ctx):
     consts, carry, xs = ins[:nc], [resolve(c, ctx) for c in ins[nc:nc + nk]], ins[nc + nk:]
     if ctx.roll_scans and length > 0:
         return _scan_rolled(eqn, closed, consts, carry, xs, length, p["reverse"], ctx)
+    used = ctx.used_outputs or [True] * len(eqn.outvars)
+    if ctx.addresses is not None and length >= LOADED_SCAN_MIN and not any(used[nk:]):
+        loads = _loads(xs, eqn.invars[len(eqn.invars) - len(xs):], length, ctx)
+        if loads is not None:
+            return _scan_loaded(eqn, closed, consts, carry, loads, length, p["reverse"], ctx)
     xs = [resolve(x, ctx) for x in xs]
     order = range(length - 1, -1, -1) if p["reverse"] else range(length)
     ys = [None] * length
@@ -311,30 +319,9 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
     interpreted once."""
     block = ctx.block
     nk = len(carry)
-    avals = [v.aval for v in eqn.outvars[:nk]]
-    shapes = [a.shape for a in avals]
-    dtypes = [np.dtype(a.dtype) for a in avals]
+    pack, unpack = _carries([v.aval for v in eqn.outvars[:nk]], ctx)
     y_avals = [v.aval for v in eqn.outvars[nk:]]
     y_dtypes = [np.dtype(a.dtype) for a in y_avals]
-
-    def store_dtype(dt):
-        return np.dtype(np.int32) if dt == np.dtype(bool) and not ctx.bool_carries else dt
-
-    def pack(objs):
-        return [_broadcast(_convert(x, store_dtype(dt), ctx), block, store_dtype(dt), ctx)
-                for obj, dt in zip(objs, dtypes) for x in obj.reshape(-1)]
-
-    def unpack(flat):
-        objs, k = [], 0
-        for shape, dt in zip(shapes, dtypes):
-            obj = _obj(shape)
-            ravel = obj.reshape(-1)
-            for i in range(ravel.size):
-                x = flat[k + i]
-                ravel[i] = (x != 0) if dt == np.dtype(bool) and x.dtype != np.dtype(bool) else x
-            objs.append(obj)
-            k += ravel.size
-        return objs
 
     # scanned inputs: element idx of x over the iterations, as one array
     xs_flat, xs_meta = [], []
@@ -404,6 +391,129 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
         stacked.append(obj)
         ctx.rows = True
     return unpack(flat) + stacked
+
+
+#: The shortest scan that `_scan_loaded` keeps as a loop (shorter ones are unrolled: a
+#: light or two, a material of one kind).
+LOADED_SCAN_MIN = 4
+
+
+class Tables:
+    """The constant tables that loaded scans index (`_loads`: the constant material
+    indices of a union's children, say), each at its position in one vector of
+    `dtype`: collected by the run of the program outside the kernel, stored by the
+    kernel after its parameters (space "c"), and found again by the kernel's run."""
+
+    def __init__(self, dtype):
+        self.dtype = np.dtype(dtype)
+        self.positions = {}
+        self.arrays = []
+        self.size = 0
+        self.frozen = False  # the kernel's run: no table is added any more
+
+    def position(self, values, dtype):
+        """The position of the table of `values` (numpy scalars of `dtype`), added if
+        new (unless `frozen`); None when `self.dtype` cannot hold them exactly, or
+        when it is new to a frozen collection (the loop is then unrolled)."""
+        a = np.asarray(values, dtype)
+        with np.errstate(all="ignore"):
+            if not np.array_equal(a.astype(self.dtype).astype(dtype), a):
+                return None
+        key = (a.dtype.str, a.tobytes())
+        if key not in self.positions:
+            if self.frozen:
+                return None
+            self.positions[key] = self.size
+            self.arrays.append(a.astype(self.dtype))
+            self.size += a.size
+        return self.positions[key]
+
+
+def _loads(xs, invars, length, ctx):
+    """How a loaded scan (`_scan_loaded`) takes iteration i of each scanned input: per
+    element of an input, `("const", c)` when every iteration's lane is the constant c,
+    or `("load", lanes, space, base, stride)` when each lane i is a value that the
+    kernel can load at position base + i·stride of `space` (`ctx.addresses`: a
+    parameter of the program, or a shared value the `Uniforms` computed outside the
+    kernel; constants that differ between iterations: a table of `ctx.tables`). None
+    when some element is none of these (the scan is then unrolled)."""
+    plan = []
+    for x, var in zip(xs, invars):
+        dt = np.dtype(var.aval.dtype)
+        elems = _obj(x.shape[1:])
+        for idx in np.ndindex(elems.shape):
+            lanes = [x[(i,) + idx] for i in range(length)]
+            if all(_is_const(v) for v in lanes):
+                if len({np.asarray(v).tobytes() for v in lanes}) == 1:
+                    elems[idx] = ("const", lanes[0])
+                    continue
+                base = None if ctx.tables is None else ctx.tables.position(lanes, dt)
+                if base is None:
+                    return None
+                elems[idx] = ("load", lanes, "c", base, 1)
+                continue
+            where = [ctx.addresses.get(id(v)) for v in lanes]
+            if any(w is None or w[0] is not v for w, v in zip(where, lanes)):
+                return None
+            spaces = {w[1][0] for w in where}
+            base = where[0][1][1]
+            stride = where[1][1][1] - base
+            if len(spaces) != 1 or any(w[1][1] != base + i * stride for i, w in enumerate(where)):
+                return None
+            elems[idx] = ("load", lanes, spaces.pop(), base, stride)
+        plan.append((elems, dt))
+    return plan
+
+
+def _scan_loaded(eqn, closed, consts, carry, loads, length, reverse, ctx):
+    """A scan as one `lax.fori_loop` in a GPU kernel (Pallas, `ctx.addresses`), one copy
+    of its body, whatever n: a stacked union of n primitives at every site that
+    evaluates the SDF. Triton holds no array it could index by the loop's counter, so
+    iteration i loads its scanned values from the kernel's parameters (`_loads`:
+    `ctx.load(space, position, dtype)`); outside the kernel (the `Uniforms`' recording
+    run, `ctx.load` None) it indexes their lanes stacked. Carries are full lanes
+    (`_carries`); the scan's stacked outputs are unused (`_scan` checks)."""
+    nk = len(carry)
+    pack, unpack = _carries([v.aval for v in eqn.outvars[:nk]], ctx)
+    stacked = {}
+    if ctx.load is None:
+        for elems, dt in loads:
+            for spec in elems.flat:
+                if spec[0] == "load":
+                    stacked[id(spec[1])] = jnp.stack([jnp.asarray(v, dt) for v in spec[1]])
+
+    def take(spec, dt, i):
+        if spec[0] == "const":
+            return spec[1]
+        _, lanes, space, base, stride = spec
+        if ctx.load is None:
+            return stacked[id(lanes)][i]
+        return ctx.load(space, base + i * stride, dt)
+
+    def body(k, flat):
+        i = length - 1 - k if reverse else k
+        xs = []
+        for elems, dt in loads:
+            obj = _obj(elems.shape)
+            for idx in np.ndindex(elems.shape):
+                obj[idx] = take(elems[idx], dt, i)
+            xs.append(obj)
+        ctx.scopes.append({})
+        try:
+            outs = ctx.eval_closed(closed, [*consts, *unpack(flat), *xs])
+        finally:
+            ctx.scopes.pop()
+        return pack(outs[:nk])
+
+    ctx.loop_depth += 1
+    try:
+        flat = lax.fori_loop(0, length, body, pack(carry))
+    finally:
+        ctx.loop_depth -= 1
+    # the stacked outputs, which nothing reads
+    unused = [np.full(v.aval.shape, np.zeros((), v.aval.dtype)[()], dtype=object)
+              for v in eqn.outvars[nk:]]
+    return unpack(flat) + unused
 
 
 def _prune_loop(cond_j, body_j, cconsts, bconsts, used):

@@ -200,6 +200,7 @@ class Uniforms:
         self._labels = {}  # id of an operand -> the order in which it was first seen
         self._alive = []  # ... kept alive, so that ids are not reused
         self._made = {}
+        self.addresses = None  # `eval_lanes(addresses=...)`: each value's ("u", order) noted
 
     #: the dtypes kept (as 32-bit words); operations on others run where they are
     DTYPES = (np.dtype(np.float32), np.dtype(np.int32), np.dtype(bool))
@@ -225,6 +226,8 @@ class Uniforms:
             out = prim.bind(*[jnp.asarray(x) for x in lanes], **params)
             self.values.append(out)
         self._made[key] = out
+        if self.addresses is not None:
+            self.addresses[id(out)] = (out, ("u", len(self.ops) - 1))
         return out
 
     def check(self, recorded):

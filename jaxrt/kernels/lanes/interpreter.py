@@ -8,7 +8,7 @@ import functools
 import jax.numpy as jnp
 import numpy as np
 
-from .control import _call, _cond, _scan, _while
+from .control import LOADED_SCAN_MIN, _call, _cond, _scan, _while
 from .elementwise import _elementwise, _round
 from .gpu import _SUBSTITUTES, _fma, _fma_plan, _substitute, rewrite
 from .indexing import _dynamic_slice, _dynamic_update_slice, _gather, _scatter
@@ -175,7 +175,7 @@ def _param_table(args, param_pos):
     return {dt: ps[0] if len(ps) == 1 else jnp.concatenate(ps) for dt, ps in parts.items()}
 
 
-def program_size(jaxpr, per_ray=None, unrolled_scans=False):
+def program_size(jaxpr, per_ray=None, unrolled_scans=False, loaded_scans=False):
     """Lane operations of a one-ray program: its equations (those of loop bodies and
     calls once), an equation that reads a per-ray value counted once per element of its
     result, as `eval_lanes` scalarises them (a batch of 2^k rays in a ray tree: 2^k lanes
@@ -190,15 +190,20 @@ def program_size(jaxpr, per_ray=None, unrolled_scans=False):
       unrolled_scans: count a scan's body once per iteration, as `eval_lanes` without
         `roll_scans` (Pallas) unrolls it: a stacked union of n children is n copies of
         its child at every site that evaluates the SDF.
+      loaded_scans: ... except a scan that Pallas keeps as a loop with `addresses`
+        (`control._scan_loaded`): at least `LOADED_SCAN_MIN` iterations over shared
+        values, its stacked outputs unused.
     """
     per_ray = [True] * len(jaxpr.invars) if per_ray is None else list(per_ray)
-    return _size(jaxpr, per_ray, unrolled_scans)
+    return _size(jaxpr, per_ray, unrolled_scans, loaded_scans)
 
 
-def _size(jaxpr, per_ray, unrolled_scans=False):
+def _size(jaxpr, per_ray, unrolled_scans=False, loaded_scans=False):
     """Lane operations of `jaxpr` whose inputs are per ray where `per_ray` says
     (`program_size`)."""
     varying = {v: f for v, f in zip(jaxpr.invars, per_ray)}
+    read = {v for e in jaxpr.eqns for v in e.invars if not is_literal(v)}
+    read.update(v for v in jaxpr.outvars if not is_literal(v))
 
     def reads(v):
         return not is_literal(v) and varying.get(v, False)
@@ -209,9 +214,15 @@ def _size(jaxpr, per_ray, unrolled_scans=False):
         any_ray = any(flags)
         shape = getattr(eqn.outvars[0].aval, "shape", ()) if eqn.outvars else ()
         total += max(1, int(np.prod(shape))) if any_ray else 1
-        copies = eqn.params["length"] if unrolled_scans and eqn.primitive.name == "scan" else 1
+        copies = 1
+        if unrolled_scans and eqn.primitive.name == "scan":
+            copies = eqn.params["length"]
+            consts, nk = _scan_counts(eqn.params)
+            if loaded_scans and copies >= LOADED_SCAN_MIN and not any(flags[consts + nk:]) \
+                    and not any(v in read for v in eqn.outvars[nk:]):
+                copies = 1
         for sub, sub_flags in _bodies(eqn, flags):
-            total += copies * _size(sub, sub_flags, unrolled_scans)
+            total += copies * _size(sub, sub_flags, unrolled_scans, loaded_scans)
         for v in eqn.outvars:
             varying[v] = any_ray
     return total
@@ -243,7 +254,8 @@ def _bodies(eqn, flags):
 
 def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
                fast_math=False, unsupported=(), int_anchor=None, ptx=None, uniforms=None,
-               bool_carries=False, roll_scans=False, keep_rows=False, compact=1):
+               bool_carries=False, roll_scans=False, keep_rows=False, compact=1,
+               addresses=None, load=None, tables=None):
     """Evaluate the one-ray program `closed` (a ClosedJaxpr) on a block of rays.
 
     Args:
@@ -274,6 +286,14 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
         once at most 1/compact of the block is active (`control._compacted`; XLA only);
         1: it runs on the whole block to the end.
 
+      addresses: {id of a shared lane: (the lane, (space, position))}, the values a
+        GPU kernel can load by position (its parameters; the `Uniforms` add theirs, in
+        space "u", by their order): a scan over such values stays a loop
+        (`control._scan_loaded`), else scans are unrolled.
+      load: `(space, position, dtype) -> lane`, the kernel's load of an address (None:
+        outside a kernel, the lanes themselves).
+      tables: a `control.Tables` of the constant tables such loops index (space "c").
+
     Returns: one object array of lanes per output of the program.
     """
     ctx = _Ctx(_shape(block), any_lane or _any_lane_default, unroll, materialize, fast_math)
@@ -283,6 +303,9 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
     ctx.uniforms = uniforms
     ctx.bool_carries = bool_carries
     ctx.roll_scans = roll_scans
+    ctx.addresses, ctx.load, ctx.tables = addresses, load, tables
+    if uniforms is not None:
+        uniforms.addresses = addresses
     ctx.compact = int(compact)
     ctx.rewrite = rewrite if (fast_math or ptx) else None
     ctx.eval_closed = functools.partial(_eval_closed, ctx=ctx)

@@ -196,6 +196,11 @@ class _Ctx:
         self.rows = False  # whether a rolled scan has made `Row` lanes
         self.param_pos = {}  # id of a 0-d parameter lane -> (dtype, position in its table)
         self.param_table = {}  # dtype -> [n] array of the program's 0-d parameter lanes
+        # Pallas: id of a shared lane -> (the lane, (space, position)) where the kernel
+        # can load it, and the load, (space, position, dtype) -> lane (`control._scan_loaded`)
+        self.addresses = None
+        self.load = None
+        self.tables = None  # Pallas: constant tables that loops index (`control.Tables`)
         self.rewrite = None  # (name, lanes, dtype, ctx) -> lane or None: GPU forms (`gpu.rewrite`)
         self.eval_closed = None  # (closed jaxpr, args) -> outputs: the interpreter, for rules
         self.used_outputs = None  # which results of the equation being evaluated are used
