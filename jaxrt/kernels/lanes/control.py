@@ -13,7 +13,8 @@ import numpy as np
 from jax import lax
 
 from .elementwise import _apply, _fold, _select
-from .jax_internals import ClosedJaxpr, Jaxpr, _closed, _scan_counts, dce_jaxpr, while_parts
+from .jax_internals import (ClosedJaxpr, Jaxpr, _closed, _scan_counts, dce_jaxpr, has_while,
+                            while_parts)
 from .values import (Row, Unsupported, _broadcast, _convert, _is_const, _lane_shape, _obj,
                      resolve, resolve_lane)
 
@@ -292,7 +293,8 @@ def _scan(eqn, ins, ctx):
     if ctx.roll_scans and length > 0:
         return _scan_rolled(eqn, closed, consts, carry, xs, length, p["reverse"], ctx)
     used = ctx.used_outputs or [True] * len(eqn.outvars)
-    if ctx.addresses is not None and length >= LOADED_SCAN_MIN and not any(used[nk:]):
+    if ctx.addresses is not None and length >= LOADED_SCAN_MIN and not any(used[nk:]) \
+            and not has_while(closed):
         loads = _loads(xs, eqn.invars[len(eqn.invars) - len(xs):], length, ctx)
         if loads is not None:
             return _scan_loaded(eqn, closed, consts, carry, loads, length, p["reverse"], ctx)
@@ -394,7 +396,9 @@ def _scan_rolled(eqn, closed, consts, carry, xs, length, reverse, ctx):
 
 
 #: The shortest scan that `_scan_loaded` keeps as a loop (shorter ones are unrolled: a
-#: light or two, a material of one kind).
+#: light or two, a material of one kind). A scan whose body holds a `while` (the slots of
+#: a ray tree, each with its marches) is unrolled too: Triton compiled the glass scene's
+#: tree as such a loop for 148 s on an H100 (its union's children are loops either way).
 LOADED_SCAN_MIN = 4
 
 

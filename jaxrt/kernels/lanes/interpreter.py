@@ -13,7 +13,7 @@ from .elementwise import _elementwise, _round
 from .gpu import _SUBSTITUTES, _fma, _fma_plan, _substitute, rewrite
 from .indexing import _dynamic_slice, _dynamic_update_slice, _gather, _scatter
 from .jax_internals import (CALLS, ELEMENTWISE, EMPTY, IDENTITY, ClosedJaxpr, Jaxpr, _scan_counts,
-                            is_dropvar, is_literal, while_parts)
+                            has_while, is_dropvar, is_literal, while_parts)
 from .structural import (_arg_reduce, _broadcast_in_dim, _concatenate, _dot_general,
                          _empty, _expand_dims, _iota, _optimization_barrier, _pad, _reduce, _reshape,
                          _rev, _slice, _split, _squeeze, _stack, _transpose, _unstack)
@@ -192,7 +192,7 @@ def program_size(jaxpr, per_ray=None, unrolled_scans=False, loaded_scans=False):
         its child at every site that evaluates the SDF.
       loaded_scans: ... except a scan that Pallas keeps as a loop with `addresses`
         (`control._scan_loaded`): at least `LOADED_SCAN_MIN` iterations over shared
-        values, its stacked outputs unused.
+        values, its stacked outputs unused, no `while` in its body.
     """
     per_ray = [True] * len(jaxpr.invars) if per_ray is None else list(per_ray)
     return _size(jaxpr, per_ray, unrolled_scans, loaded_scans)
@@ -219,7 +219,8 @@ def _size(jaxpr, per_ray, unrolled_scans=False, loaded_scans=False):
             copies = eqn.params["length"]
             consts, nk = _scan_counts(eqn.params)
             if loaded_scans and copies >= LOADED_SCAN_MIN and not any(flags[consts + nk:]) \
-                    and not any(v in read for v in eqn.outvars[nk:]):
+                    and not any(v in read for v in eqn.outvars[nk:]) \
+                    and not has_while(eqn.params["jaxpr"]):
                 copies = 1
         for sub, sub_flags in _bodies(eqn, flags):
             total += copies * _size(sub, sub_flags, unrolled_scans, loaded_scans)

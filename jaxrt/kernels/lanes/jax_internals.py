@@ -110,3 +110,16 @@ def while_parts(params):
     operands are the cond consts, the body consts, then the carries."""
     return (params["cond_nconsts"], params["body_nconsts"], params["cond_jaxpr"],
             params["body_jaxpr"])
+
+
+def has_while(jaxpr):
+    """Whether `jaxpr` (a Jaxpr or ClosedJaxpr) holds a `while`, in its inner jaxprs too."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "while":
+            return True
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (list, tuple)) else [value]:
+                if isinstance(sub, (jcore.Jaxpr, jcore.ClosedJaxpr)) and has_while(sub):
+                    return True
+    return False
