@@ -437,3 +437,73 @@ def test_a_narrowed_loop_gives_every_ray_its_own_result(compact):
         assert _whiles(program) == _whiles(closed.jaxpr) + narrows
     trips = np.ceil(np.abs(a) * 50)
     assert trips.min() == 0 and trips.max() > 90 and (trips > 50).mean() < 0.5
+
+
+def _nearest_child(p, a, b):
+    """A stacked union in small: a scan over 6 children, each a centre (a row of the
+    parameters, at stride 2), a radius and a kind (constants that differ from child to
+    child: tables); it carries the nearest distance and its kind, and stacks nothing."""
+    radii = jnp.asarray(np.linspace(0.1, 0.6, 6), a.dtype)
+    kinds = jnp.asarray(np.arange(6) % 2, jnp.int32)
+
+    def step(carry, x):
+        d, k = carry
+        c, r, kind = x
+        dist = jnp.abs(a - c) - r + b * kind
+        return (jnp.minimum(d, dist), jnp.where(dist < d, kind, k)), None
+
+    init = (jnp.asarray(jnp.inf, a.dtype), jnp.int32(-1))
+    return lax.scan(step, init, (p[1:13:2], radii, kinds))[0]
+
+
+def _count(jaxpr, name):
+    """Equations of primitive `name` in a jaxpr, its inner jaxprs included."""
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += eqn.primitive.name == name
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (list, tuple)) else [p]:
+                if isinstance(sub, (ClosedJaxpr, Jaxpr)):
+                    n += _count(getattr(sub, "jaxpr", sub), name)
+    return n
+
+
+def test_a_scan_over_parameters_stays_a_loop_that_loads_its_rows():
+    """Pallas's loaded scan (`control._scan_loaded`): a scan over rows of the program's
+    parameters (`addresses`: positions 1 + 2i) and over constant tables (`Tables`) is
+    one loop whose iteration i loads its row: outside a kernel from the lanes stacked
+    (the `Uniforms`' recording run, which collects the tables), in a kernel from one
+    vector of the parameters and the tables (`load`). The values of `vmap`, with one
+    copy of the body where unrolling makes six."""
+    from jaxrt.kernels.lanes import Tables
+
+    params, a, b = inputs()
+    closed = jax.make_jaxpr(_nearest_child)(params, a[0], b[0])
+    tables = Tables(np.float64)
+
+    def run(p, a, b, in_kernel, loops=True):
+        args = lanes_of(p)
+        addresses = {id(x): (x, ("p", j)) for j, x in enumerate(args.reshape(-1))}
+
+        def load(space, position, dtype):  # the kernel's vector: parameters, then tables
+            vector = jnp.concatenate([p, jnp.asarray(np.concatenate(tables.arrays))])
+            return vector[position + (p.shape[0] if space == "c" else 0)].astype(dtype)
+
+        outs = eval_lanes(closed, [args, _lane(a), _lane(b)], N, tables=tables,
+                          addresses=addresses if loops else None,
+                          load=load if in_kernel else None)
+        return [stack_lanes(o, N, v.aval.dtype) for o, v in zip(outs, closed.jaxpr.outvars)]
+
+    want = jax.vmap(_nearest_child, in_axes=(None, 0, 0))(jnp.asarray(params), a, b)
+    recording = jax.make_jaxpr(lambda *x: run(*x, in_kernel=False))(params, a, b)
+    assert [len(t) for t in tables.arrays] == [6, 6] and tables.size == 12
+    tables.frozen = True
+    kernel = jax.make_jaxpr(lambda *x: run(*x, in_kernel=True))(params, a, b)
+    unrolled = jax.make_jaxpr(lambda *x: run(*x, in_kernel=False, loops=False))(params, a, b)
+    assert _count(recording.jaxpr, "abs") == _count(kernel.jaxpr, "abs") == 1
+    assert _count(unrolled.jaxpr, "abs") == 6
+    for program in (recording, kernel, unrolled):
+        got = jax.core.eval_jaxpr(program.jaxpr, program.consts, params, a, b)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    assert set(np.asarray(want[1])) == {0, 1}  # both kinds are nearest somewhere

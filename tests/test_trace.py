@@ -323,3 +323,31 @@ def test_normal_estimators_converge_to_the_sphere_normal(mode):
     # Finite at the centre, where the gradient of the sphere vanishes.
     settings = jr.RenderSettings(normal_mode=mode)
     assert np.all(np.isfinite(np.asarray(jr.surface_normal(node, jnp.asarray(c), settings))))
+
+
+def test_value_and_gradient_in_forward_mode_is_reverse_modes():
+    """`trace.value_and_gradient`: in a program traced for Pallas's loops
+    (`tape.forward_gradients`) the gradient is three JVPs, elsewhere one reverse pass;
+    both are the gradient of a stacked union (a scan) and carry its material along."""
+    from jaxrt.march import tape
+    from jaxrt.trace import value_and_gradient
+
+    union = sdf.Union(*[sdf.Translate(sdf.Sphere(0.3 + 0.1 * i, material=i % 2),
+                                      offset=(0.7 * i, 0.2 * i, -0.1 * i)) for i in range(8)])
+    union = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64)
+                                   if eqx.is_inexact_array(x) else x, union)
+    p = jnp.array([1.3, 0.4, -0.2])
+    assert "scan" in str(jax.make_jaxpr(union.eval)(p))  # the children stacked
+    results = []
+    for forward in (False, True):
+        with tape.forward_gradients(forward):
+            f, g = jax.jit(lambda q: value_and_gradient(lambda x: union.eval(x)[0], q))(p)
+            (f_aux, material), g_aux = jax.jit(
+                lambda q: value_and_gradient(union.eval, q, has_aux=True))(p)
+        results.append((f, g, f_aux, material, g_aux))
+    (f0, g0, fa0, m0, ga0), (f1, g1, fa1, m1, ga1) = results
+    np.testing.assert_allclose([f1, fa1, fa0], f0, rtol=1e-15)
+    np.testing.assert_allclose(g1, g0, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(ga1, g0, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(ga0, g0, rtol=1e-15)
+    assert int(m0) == int(m1) == 0 and abs(float(jnp.linalg.norm(g0)) - 1.0) < 1e-12

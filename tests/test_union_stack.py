@@ -262,14 +262,21 @@ def many_spheres_scene(stack_threshold=stack.STACK_THRESHOLD):
     return scene, camera
 
 
-@pytest.mark.parametrize("backend", ["fused", pytest.param("pallas", marks=pytest.mark.slow)])
-def test_stacked_union_renders_the_same_through_lanes(backend):
+@pytest.mark.parametrize("backend", ["fused", "pallas"])
+def test_stacked_union_renders_the_same_through_lanes(backend, monkeypatch):
     """8 spheres (stacked, scanned) + 2 spheres and a plane (a loop): the lane backends
-    (which unroll the scan; Pallas in interpret mode on CPUs) give the image of the
-    loop union."""
+    give the image of the loop union. Both keep the scan as a loop: "fused" over its
+    lanes, Pallas (interpret mode on CPUs) loading each child's parameters
+    (`lanes.control._scan_loaded`)."""
+    from jaxrt.kernels.lanes import control
+
+    loaded = []
+    scan_loaded = control._scan_loaded
+    monkeypatch.setattr(control, "_scan_loaded", lambda *a: loaded.append(1) or scan_loaded(*a))
     scene, camera = many_spheres_scene()
     settings = jr.RenderSettings(batch_size=16)
     got = jr.render(scene, camera, settings.replace(backend=backend))
+    assert bool(loaded) == (backend == "pallas")
     loop_scene, _ = many_spheres_scene(stack_threshold=LOOP)
     want = jr.render(loop_scene, camera, settings)
     np.testing.assert_array_equal(np.asarray(got.coverage), np.asarray(want.coverage))
