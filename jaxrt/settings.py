@@ -71,16 +71,16 @@ class KernelOptions:
       auto_max_lane_ops_fused, auto_max_lane_ops_pallas
                          backend "auto" renders one-ray programs of more lane operations
                          than this (`kernels.fused._lane_ops`: elementwise operations,
-                         times the rays of the batched levels of a ray tree; on "fused"
-                         an operation on the scene's values alone counts once) with
+                         times the rays of the batched levels of a ray tree; an
+                         operation on the scene's values alone counts once) with
                          "jax": their compile time grows with it, Triton's faster than
-                         linearly. Counted as Pallas does (every scan unrolled), the
-                         Warp scene has 3.2k lane operations (Pallas compiles it in 3 s
-                         on an H200), 8 spheres on a plane 3.8k, 64 spheres 14.7k
-                         (Pallas: 66 s and 3.6 ms a render on an H100, "jax" 2.6 s and
-                         79 ms), 256 spheres 52k, the showcase 136k (38k counted with
-                         its unrolled tree and each scan once: Pallas 304 s), the glass
-                         scene 833k at max_depth 6.
+                         linearly. Counted as Pallas does (with pallas_scan_loops, a
+                         stacked union's scan once, other scans once per iteration):
+                         the Warp scene 3.0k, 8, 64 or 256 spheres on a plane 2.5k
+                         (Pallas compiles the 64 in 7 s and renders them in 2.7 ms at
+                         512×512 on an H100; unrolled, 14.7k: 85 s and 4.2 ms), the
+                         showcase 127k with its tree as a scan and 113k unrolled, the
+                         glass scene 806k / 465k at max_depth 6.
                          Counted as "fused" does (phases): Warp 2.2k, showcase 13k
                          ("fused": 33 s on 2 CPU cores), glass 6.3k ("fused": 20 s at
                          16×12).

@@ -144,8 +144,9 @@ def contour_curvature(sdf, p, direction):
 
 
 def value_grad_hessian(sdf, p):
-    """(f, ∇f, H) at p, no gradient: forward-over-reverse (`jax.hessian`), whose inner
-    reverse pass also gives f and ∇f, so the program holds one copy of f for all three."""
+    """(f, ∇f, H) at p, no gradient: forward over `trace.value_and_gradient` (reverse
+    mode, or forward mode in a Pallas program), whose inner pass also gives f and ∇f, so
+    the program holds one copy of f for all three."""
     sdf, p = stop_gradient((sdf, p))
 
     def value_and_grad(q):

@@ -24,7 +24,8 @@ from jaxrt.sdf.base import SDF
 
 
 #: Frames that do not name a site: calls, loop bodies, the JVP rule of `trace.evaluated`.
-_PLUMBING = ("__call__", "<lambda>", "step", "repeat", "body", "apply", "known_jvp", "evaluated")
+_PLUMBING = ("__call__", "<lambda>", "step", "repeat", "body", "apply", "known_jvp", "evaluated",
+             "value_and_gradient", "f_and_grad")
 
 
 class Counting(SDF):

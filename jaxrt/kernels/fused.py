@@ -200,10 +200,12 @@ def _lane_ops(closed, backend, loops=False):
     """`program_size` of a one-sample program of `_trace_one` (its inputs: the scene's
     values, then the sample's two coordinates). On "fused" an operation on the scene's
     values alone counts once (lanes compute it once per tile, and scans stay loops), so a
-    stacked group's rows do not count; Pallas unrolls scans, so there every input counts
-    per element and a scan's body once per iteration: a larger group is a larger program
-    (64 stacked spheres on a plane: 3.7k lane operations with each body counted once,
-    14.7k unrolled, which Pallas compiles in 66 s on an H100; 256 spheres: 52k)."""
+    stacked group's rows do not count. Pallas with `loops` (`pallas_scan_loops`) counts
+    the same way, but a scan that it cannot keep as a loop (`lanes.control._loads`: the
+    slots of a ray tree) once per iteration; without, every scan is unrolled and every
+    input counts per element: 64 stacked spheres on a plane are 14.7k lane operations
+    (Pallas compiled them in 66–85 s on an H100), 256 spheres 52k, against 2.5k for
+    both with loops."""
     n = len(closed.jaxpr.invars)
     unrolled = backend != "fused"
     per_ray = [unrolled and not loops] * (n - 2) + [True, True]
@@ -309,6 +311,13 @@ def _from_float32_word(w, dtype):
     return i != 0 if np.dtype(dtype) == np.dtype(bool) else i
 
 
+def _read(p_ref, position, dtype):
+    """Element `position` of a Pallas kernel's parameter vector as `dtype` (ints and
+    bools are stored there exactly as floats)."""
+    v = p_ref[position]
+    return v if v.dtype == dtype else v.astype(dtype)
+
+
 def _pow2(n, at_least=1):
     return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
@@ -397,8 +406,7 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
         for leaf, off in zip(leaves, offsets):
             obj = np.empty(leaf.shape, dtype=object)
             for j_, idx in enumerate(np.ndindex(leaf.shape)):
-                v = p_ref[off + j_]
-                obj[idx] = v if leaf.dtype == dtype else v.astype(leaf.dtype)
+                obj[idx] = _read(p_ref, off + j_, leaf.dtype)
             args.append(obj)
         addresses = addressed(args)
         args += [_lane(px), _lane(py)]
@@ -409,8 +417,7 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
         def load(space, position, dt):  # a loop's load of an address (`addressed`)
             if space == "u":
                 return _from_float32_word(p_ref[ubase + position], dt)
-            v = p_ref[position + (cbase if space == "c" else 0)]
-            return v if v.dtype == dt else v.astype(dt)
+            return _read(p_ref, position + (cbase if space == "c" else 0), dt)
 
         outs = eval_lanes(closed, args, (th, tw), any_lane=any_lane,
                           int_anchor=pl.program_id(0), ptx=ptx, uniforms=uniforms,

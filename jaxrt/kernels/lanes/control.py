@@ -5,7 +5,8 @@ while any lane is active; inactive lanes keep their state (the semantics of `vma
 while loop). `cond` with a per-ray index evaluates every branch and selects lane-wise
 (on XLA, a block in which no ray takes branch 1 of two skips it). A `scan` is
 unrolled, or with `roll_scans` (the "fused" backend) kept as one loop over lanes
-(`_scan_rolled`). Calls are inlined; on XLA their results are materialised once
+(`_scan_rolled`), or in a Pallas kernel, when it scans the kernel's parameters, as
+one loop that loads them (`_scan_loaded`). Calls are inlined; on XLA their results are materialised once
 (`_barrier`). Inner jaxprs are evaluated by `ctx.eval_closed` (the interpreter)."""
 
 import jax.numpy as jnp
@@ -282,7 +283,10 @@ def _scan(eqn, ins, ctx):
     would be). With ctx.roll_scans (the "fused" XLA backend) a scan stays a loop
     (`_scan_rolled`): one copy of its body, whatever n (`Union`'s stacked children, a
     material taken by index, the lights), also for n = 1, so that the program of a
-    scene does not change with how many things of a kind it has."""
+    scene does not change with how many things of a kind it has. In a Pallas kernel
+    (ctx.addresses) a scan of at least `LOADED_SCAN_MIN` iterations over values it can
+    load, with no loop in its body and no stacked output read, is one loop too
+    (`_scan_loaded`)."""
     p = eqn.params
     nc, nk = _scan_counts(p)
     length = p["length"]
