@@ -130,7 +130,10 @@ def _recorded(kernel, params, samples, settings, grid, offset):
                              grid, offset)
         entries = jax.lax.stop_gradient(out["tape"])
         gather = _replay_gathers(settings, params[0])
-        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds, gather)  # noqa: E731
+        wide = settings.kernel.replay_wide_unions
+        wide = jax.default_backend() == "gpu" if wide is None else wide
+        replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds, gather,  # noqa: E731
+                                      wide)
         _, tangent = jax.jvp(replay, primals, tangents)
         return out["image"], tangent
 
@@ -170,7 +173,7 @@ def _record(kernel, params, samples, settings, grid, offset):
     return out, kinds[0]
 
 
-def _replay(kernel, params, samples, entries, kinds, gather=0):
+def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False):
     """The kernel vmapped over all `samples` at once with every march read from `entries`
     (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable.
 
@@ -188,7 +191,9 @@ def _replay(kernel, params, samples, entries, kinds, gather=0):
     With `gather` rays (`_replay_gathers`), the vmap is over a named axis and the
     secondary rays of the ray tree (a level, or a slot of the scan tree) are shaded
     only where alive, in batches of `gather` (`tape.gathering`); the scene then enters
-    unbatched, since the batches close over it."""
+    unbatched, since the batches close over it.
+
+    With `wide`, stacked unions evaluate their children at once (`tape.wide_unions`)."""
     dyn, static = eqx.partition(params, eqx.is_inexact_array)
     small, large = eqx.partition(dyn, lambda x: x.size <= PER_SAMPLE_MAX)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
@@ -196,7 +201,7 @@ def _replay(kernel, params, samples, entries, kinds, gather=0):
 
     def one(d, s, entry):
         scene, camera = eqx.combine(d, large, static)
-        with tape.replaying(entry):
+        with tape.replaying(entry), tape.wide_unions(wide):
             return kernel((*camera.generate_ray(s[0], s[1]), s), scene, camera)
 
     if not gather:

@@ -117,6 +117,10 @@ class KernelOptions:
                          (`march.tape._gathered`); 0: every ray of the tree for every
                          pixel. The showcase's value_and_grad at 64×36 on 2 CPU cores:
                          2.46× its forward with 0, 1.5× with 128–512.
+      replay_wide_unions a gradient's replay evaluates every child of a stacked union
+                         at once (`vmap`) and takes the nearest, instead of a scan
+                         over them (`sdf.stack.stacked_eval`); None (default): on a
+                         GPU, where each iteration of a scan is kernels of their own.
       xla                the XLA compiler options of every backend's render program
                          (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
                          (on a CPU: the legacy loop emitter instead of XLA's MLIR
@@ -150,6 +154,7 @@ class KernelOptions:
     march_form: str = "auto"
     plain_max_lane_ops: int = 5000
     replay_gather: int = 256
+    replay_wide_unions: bool | None = None
     xla: str = "default"
 
     def __post_init__(self):
@@ -169,6 +174,8 @@ class KernelOptions:
         need(_is_int(self.compaction) and self.compaction >= 1, "compaction", "an integer ≥ 1")
         need(_is_int(self.replay_gather) and self.replay_gather >= 0, "replay_gather",
              "an integer ≥ 0")
+        need(self.replay_wide_unions is None or isinstance(self.replay_wide_unions, bool),
+             "replay_wide_unions", "true, false or None")
         for name in ("materialize", "pallas_fma", "pallas_uniforms", "pallas_scan_loops",
                      "pallas_fast_math"):
             need(isinstance(getattr(self, name), bool), name, "true or false")

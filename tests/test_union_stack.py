@@ -243,6 +243,32 @@ def test_parameter_change_does_not_retrace():
     np.testing.assert_allclose([d0, d1], [-0.5, -0.25], rtol=1e-14)
 
 
+def test_a_wide_union_is_the_scan():
+    """`tape.wide_unions` (a GPU's replay): every stacked child evaluated at once and the
+    first nearest taken, no scan left. The scan's distances, materials, gradients with
+    respect to every child's leaves, and normals."""
+    from jaxrt.march import tape
+
+    union = S.Union(*mixed_children())
+    p = points()
+
+    def run(wide):
+        def loss(u):
+            return jnp.sum(jnp.sin(jax.vmap(lambda q: stack.union_eval(u.children_, q)[0])(p)))
+
+        with tape.wide_unions(wide):  # new functions: traced in the context
+            program = str(jax.make_jaxpr(lambda u: evaluate.__wrapped__(u, p, None))(union))
+            d, m = jax.jit(lambda u: evaluate.__wrapped__(u, p, None))(union)
+            g = jax.jit(jax.grad(loss))(union)
+            n = jax.jit(lambda u: jax.vmap(jax.grad(lambda q: u.eval(q)[0]))(p))(union)
+        return program, (d, m, g, n)
+
+    (scan, want), (wide, got) = run(False), run(True)
+    assert "scan" in scan and "scan" not in wide and "argmin" in wide
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15)
+
+
 def many_spheres_scene(stack_threshold=stack.STACK_THRESHOLD):
     rng = np.random.default_rng(5)
     children = [S.Translate(S.Sphere(radius=0.2 + 0.15 * rng.uniform(), material=0),

@@ -194,6 +194,19 @@ def forward_gradient():
     return bool(getattr(_STATE, "forward_gradients", False))
 
 
+def wide_unions(on=True):
+    """Context: a stacked union evaluates all its children at once and takes the
+    nearest (`sdf.stack.stacked_eval`), instead of a scan over them: for a GPU's replay,
+    where every iteration of a scan is kernels of their own
+    (`KernelOptions.replay_wide_unions`)."""
+    return _setting("wide_unions", on)
+
+
+def widens_unions():
+    """Whether stacked unions are evaluated wide (`wide_unions`)."""
+    return bool(getattr(_STATE, "wide_unions", False))
+
+
 def skips_blocks():
     """Whether `cond` skips per block of rays: traced for "fused" (`lanes`)."""
     return lane_backend() == "fused"

@@ -22,8 +22,10 @@ selects, so the gradient flows to child j* alone (through the stack, to that chi
 own leaves), as through the loop's select-based min. Exact ties between children of
 different groups go to the first child in the list; a tie between a stacked child and
 a looped one can still be broken by an ulp of rounding (the two are compiled apart).
-The "fused" backend keeps the scan a loop over lanes (`lanes.control._scan_rolled`); Pallas
-unrolls it (`jaxrt.kernels.lanes`), so its programs still grow linearly with n.
+The "fused" backend keeps the scan a loop over lanes (`lanes.control._scan_rolled`),
+Pallas a loop that loads each child's leaves (`lanes.control._scan_loaded`). A GPU's
+replay evaluates the children at once instead, `vmap` + argmin (`march.tape.wide_unions`,
+`KernelOptions.replay_wide_unions`): there every iteration of a scan is kernels of its own.
 
 Material indices are data within a group: each primitive's static `material` becomes
 an int32 leaf (`material_as_data`), so spheres of sixteen materials are one group of
@@ -114,8 +116,17 @@ def stacked_eval(stacked, p, ids=None, d_before=None, balls=None):
     of the child (see the module docstring). With `d_before` (the union's distance
     before the group), a child that cannot come nearer than min(d_before, d) is
     skipped (`culled_eval`; `balls`: the members' balls stacked, or None)."""
+    from ..march import tape
+
     n = jax.tree_util.tree_leaves(stacked)[0].shape[0]
     ids = jnp.arange(n, dtype=jnp.int32) if ids is None else jnp.asarray(ids, jnp.int32)
+    if tape.widens_unions() and (d_before is None or not tape.culls()):
+        # every child at once, the first nearest taken: the scan's result (its select
+        # takes a child only when strictly nearer) and gradient (child j* alone); no
+        # child is culled here (`culled_eval` evaluates them all outside a long march)
+        ds, ms = jax.vmap(lambda child: child.eval(p))(stacked)
+        k = jnp.argmin(ds)
+        return ds[k], ms[k], ids[k]
     first = jax.tree_util.tree_map(lambda x: x[0], stacked)
     d0, m0 = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
                                     jax.eval_shape(first.eval, p))
