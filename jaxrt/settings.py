@@ -120,7 +120,8 @@ class KernelOptions:
       replay_wide_unions a gradient's replay evaluates every child of a stacked union
                          at once (`vmap`) and takes the nearest, instead of a scan
                          over them (`sdf.stack.stacked_eval`); None (default): on a
-                         GPU, where each iteration of a scan is kernels of their own.
+                         GPU, where each iteration of a scan is kernels of their own
+                         (64 spheres, 512×512, H100: value_and_grad 9.4 → 4.9 ms).
       xla                the XLA compiler options of every backend's render program
                          (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
                          (on a CPU: the legacy loop emitter instead of XLA's MLIR

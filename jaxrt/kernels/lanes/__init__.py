@@ -25,8 +25,9 @@ selects lane-wise. A `scan` is unrolled, or with `roll_scans` (the "fused"
 backend) kept as one loop over lanes (`control._scan_rolled`), whose stacked outputs
 stay arrays whose rows are sliced only where read (`values.Row`; the scene's leaves
 too, on "fused"); in a Pallas kernel a scan over the kernel's parameters (a stacked
-union) is one loop that loads each iteration's values (`control._scan_loaded`). Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table)
-becomes a chain of selects over the possible indices.
+union) is one loop that loads each iteration's values (`control._scan_loaded`).
+Dynamic indexing (`x[i]` with a per-ray `i`, as in a material table) becomes a chain
+of selects over the possible indices.
 
 The result is the same function as the one-ray program (same primitives, same order of
 floating-point operations), so images agree with the vmapped path to rounding. The

@@ -6,8 +6,9 @@ while loop). `cond` with a per-ray index evaluates every branch and selects lane
 (on XLA, a block in which no ray takes branch 1 of two skips it). A `scan` is
 unrolled, or with `roll_scans` (the "fused" backend) kept as one loop over lanes
 (`_scan_rolled`), or in a Pallas kernel, when it scans the kernel's parameters, as
-one loop that loads them (`_scan_loaded`). Calls are inlined; on XLA their results are materialised once
-(`_barrier`). Inner jaxprs are evaluated by `ctx.eval_closed` (the interpreter)."""
+one loop that loads them (`_scan_loaded`). Calls are inlined; on XLA their results are
+materialised once (`_barrier`). Inner jaxprs are evaluated by `ctx.eval_closed` (the
+interpreter)."""
 
 import jax.numpy as jnp
 import numpy as np

@@ -286,7 +286,6 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
       compact: a loop whose condition varies between rays narrows to its active rays
         once at most 1/compact of the block is active (`control._compacted`; XLA only);
         1: it runs on the whole block to the end.
-
       addresses: {id of a shared lane: (the lane, (space, position))}, the values a
         GPU kernel can load by position (its parameters; the `Uniforms` add theirs, in
         space "u", by their order): a scan over such values stays a loop
