@@ -8,7 +8,7 @@ from . import xla as xla
 xla.add_process_flags()  # before JAX starts its backend: it reads $XLA_FLAGS then
 
 from . import bsdf as bsdf, config as config, heightfield as heightfield, io as io, sdf as sdf, spectral as spectral
-from . import config_writer as config_writer, fit as fit, views as views
+from . import config_writer as config_writer, views as views
 from .heightfield import HeightField as HeightField
 from .camera import OrthographicCamera as OrthographicCamera, PerspectiveCamera as PerspectiveCamera
 from .lights import DirectionalLight as DirectionalLight, PointLight as PointLight
@@ -25,3 +25,13 @@ from .trace import (
 )
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    """`jaxrt.fit` (fitting drivers) is imported when first used: it imports optax and
+    optimistix, 0.15 s of every `jaxrt render`."""
+    if name == "fit":
+        import importlib
+
+        return importlib.import_module(f"{__name__}.fit")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

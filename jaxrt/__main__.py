@@ -1,7 +1,5 @@
 """`python -m jaxrt ...` runs the `jaxrt` command line (`jaxrt.cli`)."""
 
-import sys
+from .cli import run
 
-from .cli import main
-
-sys.exit(main())
+run()

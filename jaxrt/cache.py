@@ -132,11 +132,22 @@ def compile_render_cached(scene, camera, settings, folder=None):
         return render_module.Image(**dict(zip(names, outputs)))
 
     specs = [jax.ShapeDtypeStruct(leaves[i].shape, leaves[i].dtype) for i in arrays]
+    mesh, shardings = None, {}  # a program sharded over `settings.devices` names its mesh
+    if settings.devices != 1:
+        from .sharding import local_devices, pixel_mesh
+
+        mesh = pixel_mesh(local_devices(settings.devices))
+        shardings = dict(in_shardings=jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
 
     def call_with(exported):
         """The exported program compiled (from XLA's cache when it is on), not run."""
         options = xla.compiler_options(settings)
-        call = jax.jit(exported.call).lower(*specs).compile(compiler_options=options or None)
+        shardings = {}
+        if mesh is not None:
+            shardings = dict(in_shardings=exported.in_shardings_jax(mesh),
+                             out_shardings=exported.out_shardings_jax(mesh))
+        call = jax.jit(exported.call, **shardings).lower(*specs).compile(
+            compiler_options=options or None)
 
         def run(scene, camera):
             flat = jax.tree_util.tree_leaves(render_module._cast((scene, camera), dtype))
@@ -159,7 +170,7 @@ def compile_render_cached(scene, camera, settings, folder=None):
             image = render_module._render(scene_, camera_, settings)
             return tuple(getattr(image, k) for k in names)
 
-        exported = jax.export.export(jax.jit(flat_render))(*specs)
+        exported = jax.export.export(jax.jit(flat_render, **shardings))(*specs)
         run = call_with(exported)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

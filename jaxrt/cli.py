@@ -13,21 +13,21 @@ stderr says when compiling starts and when it ends.
   (`--set max_steps=256 --set shadows=soft --set aovs=[]`; a bare word is a string) and is
   checked as the file's [settings] are. It wins over the file and over --spp.
   `--set kernel.FIELD=VALUE` sets one `KernelOptions` field, keeping the file's others.
-- XLA compiles with `kernel.xla = "fast-compile"` (`CLI_XLA`, `jaxrt.xla`: on a CPU,
-  XLA's legacy loop emitter and LLVM -O1; nothing on a GPU) unless the file's
-  [settings.kernel] or `--set` names one: a one-shot render pays compile and render
-  once. The showcase at 480×270 (backend auto, i.e. "fused"), 2 shared CPU cores,
-  jax 0.10.2, `--no-cache`, the presets back to back in three runs: compile 36.1 / 46.2 /
-  65.9 s and render 26.4 / 29.8 / 44.4 s with "fast-compile" against 83.2 / 55.5 /
-  174.6 s and 23.6 / 17.5 / 23.6 s with XLA's defaults (`--set kernel.xla=default`):
-  45 s and 88 s less wall time, once 2 s more; 12 % less CPU time in the run that
-  counted it; the same image to 2.4e-4 (docs/performance.md, "XLA compiler options").
-  A program found in the persistent cache pays only the render, which is slower with
-  "fast-compile".
+- XLA compiles with the library's options (`kernel.xla = "default"`) unless the file's
+  [settings.kernel] or `--set kernel.xla=fast-compile` names another preset
+  (`jaxrt.xla`). The showcase at 480×270 ("auto", i.e. "fused"), 2 quiet CPU cores,
+  `--no-cache`, two runs each: jax 0.10.2 compiles it in 27.6 / 27.1 s and renders it in
+  1.73 / 1.82 s with XLA's defaults, against 27.2 / 25.9 s and 3.07 / 2.83 s with
+  "fast-compile"; jax 0.11.2 in 23.5 s and 1.34 s against 24.6 s and 1.69 s. So a
+  one-shot render costs the same either way, and a program found in the cache renders
+  faster (until session 30 the CLI chose "fast-compile", which saved tens of seconds
+  when the scene's ray tree was unrolled).
 - `--set devices=N` (or the file's `devices`; 0: every core) shards the image over N
   XLA CPU devices, which the command makes before JAX starts (`xla.add_host_devices`):
   XLA:CPU runs one render program on about one core, so on 2 cores the Warp scene
-  renders 2.07× faster (docs/performance.md, "Session 24").
+  renders 2.07× faster (docs/performance.md, "Session 24"). Not the default: the
+  showcase at 480×270 renders in 1.2 s against 1.7 s on one device, but its sharded
+  program compiles for 31–33 s against 25–28 s.
 - The backend is --backend (or --set backend=...), else the file's `settings.backend`,
   else "auto" (the fused lane kernels: on a 2-core CPU the showcase compiles 2.3× and
   renders 5.9× faster than with "jax"; the same image).
@@ -45,15 +45,12 @@ place only once both are written (`io.write_render`).
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 import tomllib
 from importlib import resources
 from pathlib import Path
-
-#: `KernelOptions.xla` of `jaxrt render` when neither the file nor `--set` names one
-#: (the module docstring gives the measured trade).
-CLI_XLA = "fast-compile"
 
 #: Exit statuses.
 EXIT_USAGE = 2  # a bad config, setting or argument: nothing was done
@@ -101,12 +98,13 @@ def _parser():
     return parser
 
 
-def main(argv=None):
-    """Entry point of the `jaxrt` console script; returns the exit status."""
+def main(argv=None, keep=None):
+    """The `jaxrt` command line; returns the exit status. `keep`, a list, receives the
+    compiled render program, left to the caller to free (see `run`)."""
     args = _parser().parse_args(argv)
     if args.command == "render":
         try:
-            return _render(args)
+            return _render(args, [] if keep is None else keep)
         except _Failure as e:
             print(f"jaxrt: error: {e}", file=sys.stderr)
             return e.status
@@ -114,6 +112,19 @@ def main(argv=None):
             print("jaxrt: interrupted; nothing written", file=sys.stderr)
             return 130
     return EXIT_USAGE
+
+
+def run():
+    """The `jaxrt` console script and `python -m jaxrt`: `main()`, then the process ends
+    without freeing the compiled program or tearing down JAX (the outputs are written
+    and closed by then). Freeing the showcase's CPU program took 0.35 s of a warm
+    `jaxrt render`, and the interpreter's teardown as much again. Errors and `--help`
+    leave as usual, through `SystemExit`."""
+    held = []
+    status = main(keep=held)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 class _Failure(Exception):
@@ -160,7 +171,7 @@ def parse_overrides(items):
     return out
 
 
-def _render(args):
+def _render(args, keep):
     from . import config, io
 
     path = Path(args.config) if args.config else showcase_path()
@@ -175,7 +186,6 @@ def _render(args):
             overrides.setdefault("spp", args.spp)
         config.check_settings(overrides, "--set")
         _host_devices({**file_settings, **overrides}.get("devices", 1))
-        overrides = _with_cli_xla(overrides, file_settings)
         if {**file_settings, **overrides}.get("dtype") == "float64":
             import jax
 
@@ -199,7 +209,8 @@ def _render(args):
     from .render import compile_render
 
     print(f"jaxrt: rendering {path} at {camera.width}×{camera.height}, {settings.spp} spp, "
-          f"backend {settings.backend}, xla {settings.kernel.xla}")
+          f"backend {settings.backend}, xla {settings.kernel.xla}, "
+          f"{settings.devices or 'every'} device{'' if settings.devices == 1 else 's'}")
     sys.stdout.flush()
     print("jaxrt: compiling…", file=sys.stderr, flush=True)
     start = time.perf_counter()
@@ -211,6 +222,7 @@ def _render(args):
             from .cache import compile_render_cached
 
             render, reused = compile_render_cached(scene, camera, settings, cache_folder)
+        keep.append(render)
         compile_seconds = time.perf_counter() - start
         how = " (the cached program)" if reused else ""
         print(f"jaxrt: compiled in {compile_seconds:.2f} s{how}", file=sys.stderr, flush=True)
@@ -236,8 +248,6 @@ def _host_devices(devices):
     XLA CPU devices (0: one per core this process may run on), so that a render on a CPU
     can be sharded over its cores (`xla.add_host_devices`). A GPU's devices are its own;
     a bad value is left for `config.load` to report."""
-    import os
-
     from . import xla
 
     wanted = isinstance(devices, int) and not isinstance(devices, bool)
@@ -245,19 +255,6 @@ def _host_devices(devices):
         cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
                  else os.cpu_count() or 1)
         xla.add_host_devices(devices if devices > 1 else cores)
-
-
-def _with_cli_xla(overrides, file_settings):
-    """`overrides` with `kernel.xla = CLI_XLA` unless the file's [settings.kernel] or
-    `--set` names one; the file's other kernel options are kept (an override's `kernel`
-    table replaces the file's, so it carries them)."""
-    file_kernel = file_settings.get("kernel", {})
-    kernel = overrides.get("kernel", {})
-    if not isinstance(file_kernel, dict) or not isinstance(kernel, dict):
-        return overrides  # a malformed table: config reports it
-    if "xla" in kernel or "xla" in file_kernel:
-        return overrides
-    return {**overrides, "kernel": {**file_kernel, **kernel, "xla": CLI_XLA}}
 
 
 def format_rate(x):

@@ -43,7 +43,6 @@ hits the floor just behind a sphere still reports its near miss of the sphere.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
 
 from .march import tape
 from .march.search import repeat
@@ -291,6 +290,8 @@ def _polish_optimistix(sdf, origin, direction, t, hit, steps):
     def g(y, args):
         sdf_, o, d = args
         return jnp.where(ok, sdf_(o + y * d), y - t0)
+
+    import optimistix as optx  # here: importing it costs `jaxrt render` 0.12 s
 
     # Tolerances at rounding level: the step budget, not convergence, ends the polish.
     tol = 4.0 * float(jnp.finfo(t0.dtype).eps)

@@ -87,7 +87,7 @@ def test_python_m_jaxrt_and_version():
 def test_devices_on_a_cpu_get_as_many_xla_devices(tmp_path):
     """`--set devices=2` makes two XLA CPU devices before JAX starts (a fresh process:
     this one's backend has started) and shards the image over them: the same image as
-    on one device, where before it stopped with "only 1 local devices"."""
+    on one device. A second run reads the sharded program back from the cache."""
     import os
     import subprocess
     import sys
@@ -95,15 +95,19 @@ def test_devices_on_a_cpu_get_as_many_xla_devices(tmp_path):
     config = tmp_path / "ball.toml"
     config.write_text(SCENE)
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env.update(JAX_PLATFORMS="cpu", JAXRT_NO_CACHE="1")
-    for devices in (1, 2):
+    env.update(JAX_PLATFORMS="cpu", JAXRT_NO_CACHE="", JAXRT_CACHE_DIR=str(tmp_path / "cache"))
+    runs = {"one": ["devices=1"], "two": ["devices=2"], "cached": ["devices=2"]}
+    for name, settings in runs.items():
         out = subprocess.run([sys.executable, "-m", "jaxrt", "render", str(config), "-o",
-                              str(tmp_path / f"d{devices}"), "--width", "16", "--height", "8",
-                              "--set", f"devices={devices}"],
+                              str(tmp_path / name), "--width", "16", "--height", "8",
+                              *[a for s in settings for a in ("--set", s)]],
                              capture_output=True, text=True, timeout=600, env=env)
         assert out.returncode == 0, out.stderr[-2000:]
-    a, b = (io.read_exr(tmp_path / f"d{d}.exr")["rgb"] for d in (1, 2))
-    np.testing.assert_allclose(a, b, atol=1e-6)
+        assert (", 1 device\n" if name == "one" else ", 2 devices\n") in out.stdout
+        assert ("(the cached program)" in out.stderr) == (name == "cached")
+    one, *others = (io.read_exr(tmp_path / f"{name}.exr")["rgb"] for name in runs)
+    for image in others:
+        np.testing.assert_allclose(image, one, atol=1e-6)
 
 
 def test_add_host_devices_only_before_jax_starts_and_keeps_a_users_count(monkeypatch):

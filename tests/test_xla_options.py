@@ -10,7 +10,7 @@ import pytest
 
 import jaxrt as jr
 from jaxrt import xla
-from jaxrt.cli import _Failure, _with_cli_xla, main, parse_overrides
+from jaxrt.cli import _Failure, main, parse_overrides
 from jaxrt.render import compile_render
 
 S = jr.sdf
@@ -263,21 +263,20 @@ def test_fit_step_compiles_with_the_losses_options(compiles):
     assert steps == [FAST]
 
 
-def test_cli_uses_fast_compile_unless_told(tmp_path, capsys, compiles):
-    over = parse_overrides(["kernel.xla=default", "kernel.unroll=2", "spp=2"])
-    assert over == {"kernel": {"xla": "default", "unroll": 2}, "spp": 2}
+def test_cli_compiles_with_the_librarys_options_unless_told(tmp_path, capsys, compiles):
+    over = parse_overrides(["kernel.xla=fast-compile", "kernel.unroll=2", "spp=2"])
+    assert over == {"kernel": {"xla": "fast-compile", "unroll": 2}, "spp": 2}
     with pytest.raises(_Failure, match="unknown kernel option `speed`"):
         parse_overrides(["kernel.speed=3"])
     with pytest.raises(_Failure, match="unknown setting `camera.fov`"):
         parse_overrides(["camera.fov=3"])
-    file_settings = {"kernel": {"unroll": 3}}
-    assert _with_cli_xla({}, file_settings) == {"kernel": {"unroll": 3, "xla": "fast-compile"}}
-    assert _with_cli_xla(over, file_settings) == over
-    assert _with_cli_xla({}, {"kernel": {"xla": "default"}}) == {}
     config = tmp_path / "ball.toml"
     config.write_text('[camera]\neye = [0.0, 0.0, -4.0]\ntarget = [0.0, 0.0, 0.0]\nwidth = 6\n'
                       'height = 4\n[settings]\nbackend = "jax"\naovs = []\n[materials.white]\n'
                       'type = "lambert"\n[surface]\ntype = "sphere"\nradius = 1.0\n')
-    assert main(["render", str(config), "-o", str(tmp_path / "ball"), "--no-cache"]) == 0
-    assert "xla fast-compile" in capsys.readouterr().out
-    assert [opts for name, opts in compiles if "render" in name] == [FAST]
+    for args, preset, options in (([], "default", {}),
+                                  (["--set", "kernel.xla=fast-compile"], "fast-compile", FAST)):
+        compiles.clear()
+        assert main(["render", str(config), "-o", str(tmp_path / "ball"), "--no-cache", *args]) == 0
+        assert f"xla {preset}" in capsys.readouterr().out
+        assert [opts for name, opts in compiles if "render" in name] == [options]
