@@ -319,6 +319,29 @@ def test_values_constants_fold_at_trace_time():
                                   np.moveaxis(np.asarray(x), -1, 0))
 
 
+def test_arrays_of_constants_fold_in_one_call_as_element_by_element():
+    """Elementwise operations and reductions on arrays of constants fold at trace time
+    at once (`elementwise._folded`, `_fold`: a stacked union's per-child constants),
+    to the values of the same float32 operations element by element and in order."""
+    import functools
+
+    c = np.linspace(-2.0, 3.0, 9).astype(np.float32)
+    k = np.arange(9, dtype=np.int32) % 3
+
+    def fn(x):
+        y = c * k.astype(np.float32) + x
+        return y, jnp.sum(y), jnp.max(y.at[4].set(np.nan)), jnp.any(k == 2), jnp.prod(y[1:4])
+
+    closed = jax.make_jaxpr(fn)(np.float32(0.1))
+    outs = eval_lanes(closed, [lanes_of(np.float32(0.1))], N)
+    assert all(values._is_const(x) for o in outs for x in o.reshape(-1))
+    y = [np.float32(ci * np.float32(ki) + np.float32(0.1)) for ci, ki in zip(c, k)]
+    want = [np.asarray(y), functools.reduce(np.add, y), np.float32(np.nan), True,
+            functools.reduce(np.multiply, y[1:4])]
+    for o, w in zip(outs, want, strict=True):
+        np.testing.assert_array_equal(o.astype(np.asarray(w).dtype), w)
+
+
 def test_gpu_rewrites_keep_the_function():
     """The GPU rewrites in their interpret-mode forms (`fused._ptx_ops(True)`): fast math
     (sqrt, rsqrt, division, exp, log, pow) and fused multiply-adds give the plain

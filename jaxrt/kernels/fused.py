@@ -318,6 +318,29 @@ def _read(p_ref, position, dtype):
     return v if v.dtype == dtype else v.astype(dtype)
 
 
+def _recording_load(leaves, dtype, recorded, tables):
+    """`eval_lanes`'s `load` for the `Uniforms`' recording run, outside the kernel: the
+    kernel's `load` (in `_pallas`) on the parts of its parameter vector known so far
+    (the parameters, the values recorded, the tables collected). A loop's iteration i
+    reads its row as one element of a vector, where stacking the row's lanes took
+    O(n) operations per loaded value: 256 spheres' render traced in 2.9 s against 1.5 s
+    for 8 (CPU, Pallas lowered for CUDA), most of it `jnp.stack` of 256 scalars."""
+    flat = jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves] or [jnp.zeros(1, dtype)])
+    words = {}
+
+    def load(space, position, dt):
+        if space == "p":
+            return _read(flat, position, dt)
+        if space == "u":  # no value is recorded inside a loop: the list is complete here
+            n = len(recorded.values)
+            if n not in words:
+                words[n] = jnp.concatenate([_as_float32_word(v) for v in recorded.values])
+            return _from_float32_word(words[n][position], dt)
+        return _read(jnp.asarray(np.concatenate(tables.arrays), dtype), position, dt)
+
+    return load
+
+
 def _pow2(n, at_least=1):
     return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
@@ -365,6 +388,7 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
         args = [lanes_of(x) for x in leaves]
         eval_lanes(closed, args + [placeholder, placeholder],
                    (th, tw), uniforms=recorded, addresses=addressed(args), tables=tables,
+                   load=_recording_load(leaves, dtype, recorded, tables),
                    ptx=None if ptx is None else {k: f for k, f in _ptx_ops(True).items() if k in ptx},
                    **lane_options)
         if tables is not None:

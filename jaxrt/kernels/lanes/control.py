@@ -479,8 +479,9 @@ def _scan_loaded(eqn, closed, consts, carry, loads, length, reverse, ctx):
     of its body, whatever n: a stacked union of n primitives at every site that
     evaluates the SDF. Triton holds no array it could index by the loop's counter, so
     iteration i loads its scanned values from the kernel's parameters (`_loads`:
-    `ctx.load(space, position, dtype)`); outside the kernel (the `Uniforms`' recording
-    run, `ctx.load` None) it indexes their lanes stacked. Carries are full lanes
+    `ctx.load(space, position, dtype)`; the `Uniforms`' recording run outside the kernel
+    reads the same values from XLA arrays, `fused._recording_load`); without `ctx.load`
+    it indexes their lanes stacked. Carries are full lanes
     (`_carries`); the scan's stacked outputs are unused (`_scan` checks)."""
     nk = len(carry)
     pack, unpack = _carries([v.aval for v in eqn.outvars[:nk]], ctx)

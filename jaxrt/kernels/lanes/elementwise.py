@@ -43,12 +43,29 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
 
 def _elementwise(eqn, ins, ctx):
     out_aval = eqn.outvars[0].aval
+    if eqn.primitive.name in IDENTITY:
+        return [ins[0]]
     arrays = np.broadcast_arrays(*ins) if len(ins) > 1 else ins
+    if out_aval.shape and all(_is_const(x) for a in arrays for x in a.flat):
+        return [_folded(eqn.primitive, arrays, eqn.params, out_aval.dtype)]
     out = _obj(out_aval.shape)
     for idx in np.ndindex(out_aval.shape):
         out[idx] = _bind_lanes(eqn.primitive, [a[idx] for a in arrays], eqn.params,
                                out_aval.dtype, ctx)
     return [out]
+
+
+def _folded(prim, arrays, params, out_dtype):
+    """An elementwise primitive on arrays of constants, evaluated at trace time in one
+    call, not once per element (`_bind_lanes`): a stacked union's 256 per-child
+    constants at each of eight sites were 2 048 evaluations."""
+    typed = [np.asarray(a.tolist(), dtype=a.flat[0].dtype) for a in arrays]
+    with jax.ensure_compile_time_eval():
+        value = np.asarray(prim.bind(*[jnp.asarray(t) for t in typed], **params)).astype(out_dtype)
+    out = _obj(value.shape)
+    for idx in np.ndindex(value.shape):
+        out[idx] = value[idx]
+    return out
 
 
 def _apply(name, *lanes, dtype, ctx, **params):
@@ -61,7 +78,18 @@ def _select(pred, on_false, on_true, dtype, ctx):
     return _apply("select_n", pred, on_false, on_true, dtype=dtype, ctx=ctx)
 
 
+#: numpy's scalar forms of the primitives that `_fold` reduces with (IEEE operations on
+#: scalars of one dtype, as XLA's).
+_NUMPY_FOLDS = {"add": np.add, "mul": np.multiply, "max": np.maximum, "min": np.minimum,
+                "and": np.bitwise_and, "or": np.bitwise_or, "xor": np.bitwise_xor}
+
+
 def _fold(values, name, dtype, ctx):
+    """values[0] ∘ values[1] ∘ … in that order; constants alone in numpy, at once."""
+    if len(values) > 2 and name in _NUMPY_FOLDS and all(_is_const(v) for v in values):
+        with np.errstate(all="ignore"):
+            out = functools.reduce(_NUMPY_FOLDS[name], [v.astype(dtype) for v in values])
+        return np.asarray(out, dtype)[()]
     return functools.reduce(lambda a, b: _apply(name, a, b, dtype=dtype, ctx=ctx), values)
 
 
