@@ -108,7 +108,7 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
         try:
-            size = _lane_ops(traced()[0], backend, settings.kernel.pallas_scan_loops)
+            size = _lane_ops(traced()[0], backend, _loaded_scans(backend, settings))
             limit = settings.kernel.auto_max_lane_ops(backend)
             if size > limit:
                 raise Unsupported(
@@ -181,7 +181,7 @@ def _trace_one(one, dyn, dtype, settings, backend):
     px = jax.ShapeDtypeStruct((), dtype)
     shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
 
-    loops = backend == "pallas" and settings.kernel.pallas_scan_loops
+    loops = _loaded_scans(backend, settings)
 
     def trace(form):  # a new function each time: make_jaxpr caches traces by function
         with march_form.using(form), tape.lanes(backend), tape.forward_gradients(loops):
@@ -194,6 +194,12 @@ def _trace_one(one, dyn, dtype, settings, backend):
         if _lane_ops(plain[0], backend, loops) <= limit:
             closed, out_shapes = plain
     return closed, out_shapes
+
+
+def _loaded_scans(backend, settings):
+    """Whether the kernel keeps scans over its parameters as loops that load their rows
+    (Pallas with `KernelOptions.pallas_scan_loops`: `lanes.control._scan_loaded`)."""
+    return backend == "pallas" and settings.kernel.pallas_scan_loops
 
 
 def _lane_ops(closed, backend, loops=False):
