@@ -132,12 +132,12 @@ def compile_render_cached(scene, camera, settings, folder=None):
         return render_module.Image(**dict(zip(names, outputs)))
 
     specs = [jax.ShapeDtypeStruct(leaves[i].shape, leaves[i].dtype) for i in arrays]
-    mesh, shardings = None, {}  # a program sharded over `settings.devices` names its mesh
+    mesh, replicated = None, {}  # a program sharded over `settings.devices` names its mesh
     if settings.devices != 1:
         from .sharding import local_devices, pixel_mesh
 
         mesh = pixel_mesh(local_devices(settings.devices))
-        shardings = dict(in_shardings=jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+        replicated = dict(in_shardings=jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
 
     def call_with(exported):
         """The exported program compiled (from XLA's cache when it is on), not run."""
@@ -170,7 +170,7 @@ def compile_render_cached(scene, camera, settings, folder=None):
             image = render_module._render(scene_, camera_, settings)
             return tuple(getattr(image, k) for k in names)
 
-        exported = jax.export.export(jax.jit(flat_render, **shardings))(*specs)
+        exported = jax.export.export(jax.jit(flat_render, **replicated))(*specs)
         run = call_with(exported)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

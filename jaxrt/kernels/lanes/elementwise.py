@@ -5,6 +5,7 @@ elementwise equation (`_elementwise`: once per element of its result), the helpe
 other rules build from (`_apply`, `_select`, `_fold`), and `round` from `floor`."""
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -44,9 +45,9 @@ def _bind_lanes(prim, lanes, params, out_dtype, ctx):
 def _elementwise(eqn, ins, ctx):
     out_aval = eqn.outvars[0].aval
     if eqn.primitive.name in IDENTITY:
-        return [ins[0]]
+        return [ins[0].copy()]
     arrays = np.broadcast_arrays(*ins) if len(ins) > 1 else ins
-    if out_aval.shape and all(_is_const(x) for a in arrays for x in a.flat):
+    if math.prod(out_aval.shape) > 1 and all(_is_const(x) for a in arrays for x in a.flat):
         return [_folded(eqn.primitive, arrays, eqn.params, out_aval.dtype)]
     out = _obj(out_aval.shape)
     for idx in np.ndindex(out_aval.shape):
