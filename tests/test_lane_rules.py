@@ -319,14 +319,18 @@ def test_values_constants_fold_at_trace_time():
                                   np.moveaxis(np.asarray(x), -1, 0))
 
 
-def test_arrays_of_constants_fold_in_one_call_as_element_by_element():
+def test_arrays_of_constants_fold_in_one_call_as_element_by_element(monkeypatch):
     """Elementwise operations and reductions on arrays of constants fold at trace time
     at once (`elementwise._folded`, `_fold`: a stacked union's per-child constants),
     to the values of the same float32 operations element by element and in order."""
     import functools
 
-    c = np.linspace(-2.0, 3.0, 9).astype(np.float32)
-    k = np.arange(9, dtype=np.int32) % 3
+    from jaxrt.kernels.lanes import elementwise
+
+    folded, at_once = [], elementwise._folded
+    monkeypatch.setattr(elementwise, "_folded", lambda *a: folded.append(a) or at_once(*a))
+    c = np.linspace(-2.0, 3.0, elementwise.FOLD_AT_ONCE + 4).astype(np.float32)
+    k = np.arange(c.size, dtype=np.int32) % 3
 
     def fn(x):
         y = c * k.astype(np.float32) + x
@@ -334,7 +338,7 @@ def test_arrays_of_constants_fold_in_one_call_as_element_by_element():
 
     closed = jax.make_jaxpr(fn)(np.float32(0.1))
     outs = eval_lanes(closed, [lanes_of(np.float32(0.1))], N)
-    assert all(values._is_const(x) for o in outs for x in o.reshape(-1))
+    assert all(values._is_const(x) for o in outs for x in o.reshape(-1)) and folded
     y = [np.float32(ci * np.float32(ki) + np.float32(0.1)) for ci, ki in zip(c, k)]
     want = [np.asarray(y), functools.reduce(np.add, y), np.float32(np.nan), True,
             functools.reduce(np.multiply, y[1:4])]

@@ -47,13 +47,19 @@ def _elementwise(eqn, ins, ctx):
     if eqn.primitive.name in IDENTITY:
         return [ins[0].copy()]
     arrays = np.broadcast_arrays(*ins) if len(ins) > 1 else ins
-    if math.prod(out_aval.shape) > 1 and all(_is_const(x) for a in arrays for x in a.flat):
+    if math.prod(out_aval.shape) >= FOLD_AT_ONCE and all(_is_const(x) for a in arrays for x in a.flat):
         return [_folded(eqn.primitive, arrays, eqn.params, out_aval.dtype)]
     out = _obj(out_aval.shape)
     for idx in np.ndindex(out_aval.shape):
         out[idx] = _bind_lanes(eqn.primitive, [a[idx] for a in arrays], eqn.params,
                                out_aval.dtype, ctx)
     return [out]
+
+
+#: Arrays of constants of at least this many elements fold in one call (`_folded`): each
+#: new shape compiles a small XLA program once (about 10 ms), where the scalar programs
+#: of `_bind_lanes` are compiled once per primitive and dtype.
+FOLD_AT_ONCE = 16
 
 
 def _folded(prim, arrays, params, out_dtype):
