@@ -210,7 +210,7 @@ def _render(args, keep):
 
     print(f"jaxrt: rendering {path} at {camera.width}×{camera.height}, {settings.spp} spp, "
           f"backend {settings.backend}, xla {settings.kernel.xla}, "
-          f"{settings.devices or 'every'} device{'' if settings.devices == 1 else 's'}")
+          f"{ {0: 'every device', 1: '1 device'}.get(settings.devices, f'{settings.devices} devices')}")
     sys.stdout.flush()
     print("jaxrt: compiling…", file=sys.stderr, flush=True)
     start = time.perf_counter()
