@@ -512,7 +512,7 @@ def test_a_scan_over_parameters_stays_a_loop_that_loads_its_rows():
         args = lanes_of(p)
         addresses = {id(x): (x, ("p", j)) for j, x in enumerate(args.reshape(-1))}
 
-        def load(space, position, dtype):  # the kernel's vector: parameters, then tables
+        def load(space, position, dtype, scope):  # the kernel's vector: parameters, then tables
             vector = jnp.concatenate([p, jnp.asarray(np.concatenate(tables.arrays))])
             return vector[position + (p.shape[0] if space == "c" else 0)].astype(dtype)
 
@@ -534,3 +534,36 @@ def test_a_scan_over_parameters_stays_a_loop_that_loads_its_rows():
         for g, w in zip(got, want, strict=True):
             np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
     assert set(np.asarray(want[1])) == {0, 1}  # both kinds are nearest somewhere
+
+
+def test_two_loops_read_the_recorded_values_each_in_its_own_body():
+    """The `Uniforms`' recording run (`fused._recording_load`): two loaded scans over
+    the same shared values (no value recorded between them) each read them from a
+    vector built in their own body; a vector built in the first body and read in the
+    second was a leaked tracer."""
+    from jaxrt.kernels import fused
+    from jaxrt.kernels.lanes import Uniforms
+
+    def two_scans(p, x):
+        q = p * 2.0  # shared values, recorded
+        c, _ = lax.scan(lambda c, qi: (c + qi * x, None), x, q)
+        c, _ = lax.scan(lambda c, qi: (c * 0.5 + qi, None), c, q)
+        return c
+
+    p = np.arange(1.0, 5.0, dtype=np.float32)
+    x = np.linspace(0.0, 1.0, N, dtype=np.float32)
+    closed = jax.make_jaxpr(two_scans)(p, x[0])
+    recorded = Uniforms()
+
+    @jax.jit
+    def run(p, x):
+        args = lanes_of(p)
+        addresses = {id(v): (v, ("p", j)) for j, v in enumerate(args.reshape(-1))}
+        out, = eval_lanes(closed, [args, _lane(x)], N, uniforms=recorded, addresses=addresses,
+                          load=fused._recording_load([p], jnp.float32, recorded, None))
+        return stack_lanes(out, N, np.float32)
+
+    got = run(p, x)
+    assert len(recorded.values) == 4
+    np.testing.assert_array_equal(np.asarray(got),
+                                  np.asarray(jax.vmap(two_scans, in_axes=(None, 0))(p, x)))

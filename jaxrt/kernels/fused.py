@@ -330,18 +330,20 @@ def _recording_load(leaves, dtype, recorded, tables):
     (the parameters, the values recorded, the tables collected). A loop's iteration i
     reads its row as one element of a vector, where stacking the row's lanes took
     O(n) operations per loaded value: 256 spheres' render traced in 2.9 s against 1.5 s
-    for 8 (CPU, Pallas lowered for CUDA), most of it `jnp.stack` of 256 scalars."""
+    for 8 (CPU, Pallas lowered for CUDA), most of it `jnp.stack` of 256 scalars. The
+    recorded values' vector is built once per loop body (`scope`: a vector staged in
+    one body must not be read in another) and count (no value is recorded inside a
+    loop: the list is complete when a loop reads it)."""
     flat = jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves] or [jnp.zeros(1, dtype)])
-    words = {}
 
-    def load(space, position, dt):
+    def load(space, position, dt, scope):
         if space == "p":
             return _read(flat, position, dt)
-        if space == "u":  # no value is recorded inside a loop: the list is complete here
-            n = len(recorded.values)
-            if n not in words:
-                words[n] = jnp.concatenate([_as_float32_word(v) for v in recorded.values])
-            return _from_float32_word(words[n][position], dt)
+        if space == "u":
+            key = ("recorded", len(recorded.values))
+            if key not in scope:
+                scope[key] = jnp.concatenate([_as_float32_word(v) for v in recorded.values])
+            return _from_float32_word(scope[key][position], dt)
         return _read(jnp.asarray(np.concatenate(tables.arrays), dtype), position, dt)
 
     return load
@@ -444,7 +446,7 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
         if recorded is not None:
             uniforms = Uniforms(read=lambda k_, dt: _from_float32_word(p_ref[ubase + k_], dt))
 
-        def load(space, position, dt):  # a loop's load of an address (`addressed`)
+        def load(space, position, dt, scope):  # a loop's load of an address (`addressed`)
             if space == "u":
                 return _from_float32_word(p_ref[ubase + position], dt)
             return _read(p_ref, position + (cbase if space == "c" else 0), dt)

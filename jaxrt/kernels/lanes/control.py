@@ -479,10 +479,11 @@ def _scan_loaded(eqn, closed, consts, carry, loads, length, reverse, ctx):
     of its body, whatever n: a stacked union of n primitives at every site that
     evaluates the SDF. Triton holds no array it could index by the loop's counter, so
     iteration i loads its scanned values from the kernel's parameters (`_loads`:
-    `ctx.load(space, position, dtype)`; the `Uniforms`' recording run outside the kernel
-    reads the same values from XLA arrays, `fused._recording_load`); without `ctx.load`
-    it indexes their lanes stacked. Carries are full lanes
-    (`_carries`); the scan's stacked outputs are unused (`_scan` checks)."""
+    `ctx.load(space, position, dtype, scope)`, scope: the body's cache; the `Uniforms`'
+    recording run outside the kernel reads the same values from XLA arrays,
+    `fused._recording_load`); without `ctx.load` it indexes their lanes stacked.
+    Carries are full lanes (`_carries`); the scan's stacked outputs are unused (`_scan`
+    checks)."""
     nk = len(carry)
     pack, unpack = _carries([v.aval for v in eqn.outvars[:nk]], ctx)
     stacked = {}
@@ -498,18 +499,18 @@ def _scan_loaded(eqn, closed, consts, carry, loads, length, reverse, ctx):
         _, lanes, space, base, stride = spec
         if ctx.load is None:
             return stacked[id(lanes)][i]
-        return ctx.load(space, base + i * stride, dt)
+        return ctx.load(space, base + i * stride, dt, ctx.scopes[-1])
 
     def body(k, flat):
         i = length - 1 - k if reverse else k
-        xs = []
-        for elems, dt in loads:
-            obj = _obj(elems.shape)
-            for idx in np.ndindex(elems.shape):
-                obj[idx] = take(elems[idx], dt, i)
-            xs.append(obj)
         ctx.scopes.append({})
         try:
+            xs = []
+            for elems, dt in loads:
+                obj = _obj(elems.shape)
+                for idx in np.ndindex(elems.shape):
+                    obj[idx] = take(elems[idx], dt, i)
+                xs.append(obj)
             outs = ctx.eval_closed(closed, [*consts, *unpack(flat), *xs])
         finally:
             ctx.scopes.pop()

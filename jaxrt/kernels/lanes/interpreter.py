@@ -290,8 +290,9 @@ def eval_lanes(closed, args, block, any_lane=None, unroll=1, materialize=False,
         GPU kernel can load by position (its parameters; the `Uniforms` add theirs, in
         space "u", by their order): a scan over such values stays a loop
         (`control._scan_loaded`), else scans are unrolled.
-      load: `(space, position, dtype) -> lane`, the kernel's load of an address (None:
-        outside a kernel, the lanes themselves).
+      load: `(space, position, dtype, scope) -> lane`, the kernel's load of an address
+        (None: outside a kernel, the lanes themselves); scope: a dict, one per loop body
+        traced, where the load may keep what it builds for the body's later loads.
       tables: a `control.Tables` of the constant tables such loops index (space "c").
 
     Returns: one object array of lanes per output of the program.

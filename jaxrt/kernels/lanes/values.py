@@ -197,7 +197,7 @@ class _Ctx:
         self.param_pos = {}  # id of a 0-d parameter lane -> (dtype, position in its table)
         self.param_table = {}  # dtype -> [n] array of the program's 0-d parameter lanes
         # Pallas: id of a shared lane -> (the lane, (space, position)) where the kernel
-        # can load it, and the load, (space, position, dtype) -> lane (`control._scan_loaded`)
+        # can load it, and the load, (space, position, dtype, scope) -> lane (`control._scan_loaded`)
         self.addresses = None
         self.load = None
         self.tables = None  # Pallas: constant tables that loops index (`control.Tables`)
