@@ -82,11 +82,11 @@ def spawn_offset(p, settings, epsilon=None):
     the new ray does not re-hit the surface it leaves, also when it starts inside an
     object. The second is the rounding error of the hit point's coordinates (a few ulps
     of the largest), so that the offset also works far from the origin (pbrt-v4
-    `OffsetRayOrigin` bounds the same error per coordinate).
+    `OffsetRayOrigin` bounds the same error per coordinate; `rounding_floor`, with no
+    gradient).
     """
     eps = settings.hit_epsilon if epsilon is None else epsilon
-    rounding = 8.0 * jnp.finfo(p.dtype).eps * jnp.max(jnp.abs(p))
-    return settings.ray_offset * (eps + rounding)
+    return settings.ray_offset * (eps + rounding_floor(p))
 
 
 def surface_distance(scene, which, x):

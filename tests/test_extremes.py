@@ -200,6 +200,40 @@ def test_height_fields_and_silhouettes_do_not_change_with_scale(shadows):
         np.testing.assert_allclose(g, g_ref, rtol=2e-3, err_msg=f"{shadows}, s = {s}")
 
 
+def test_forward_and_reverse_gradients_of_soft_shadows_are_finite_and_agree():
+    """A sphere in a point light's soft shadows, float32, jvp and grad of its image with
+    respect to the radius: finite at every pixel, and the jvp's mean equals the grad of
+    the mean. (Secondary rays start `spawn_offset` off the surface, ∝ max|pᵢ|; the
+    derivative of `jnp.max` divides by the count of components equal to the maximum, and
+    with p computed twice by XLA that was 0/0 on the shadow terminator: a NaN tangent in
+    forward mode, and NaN gradients in reverse mode at XLA:CPU -O0.) At three of XLA:CPU's
+    LLVM optimisation levels."""
+    scene = jr.Scene(surface=jr.sdf.Translate(jr.sdf.Sphere(radius=0.7, material=0),
+                                              offset=(0.2, 0.1, 0.0)),
+                     materials=[jr.bsdf.Lambert(albedo=(0.5, 0.6, 0.4))],
+                     lights=[jr.PointLight(position=(1.5, 3.0, -2.0), intensity=(25.0,) * 3)],
+                     background=(0.2, 0.25, 0.35))
+    camera = field_camera(1.0, width=8, height=6)
+    settings = jr.RenderSettings(hit_epsilon=1e-15, max_distance=1e7, shadows="soft",
+                                 max_depth=0, backend="jax", aovs=(), max_steps=192)
+
+    def image(radius):
+        sc = eqx.tree_at(lambda s: s.surface.child.radius, scene, radius)
+        return jr.render(sc, camera, settings).rgb
+
+    def compiled(fn, r, options):
+        return jax.jit(fn).lower(r).compile(compiler_options=options)(r)
+
+    radius = scene.surface.child.radius
+    for level in (0, 1, 2):  # XLA:CPU's LLVM optimisation levels round differently
+        options = {"xla_backend_optimization_level": level}
+        _, tangent = compiled(lambda r: jax.jvp(image, (r,), (jnp.ones_like(r),)), radius, options)
+        grad = compiled(jax.grad(lambda r: jnp.mean(image(r))), radius, options)
+        assert np.all(np.isfinite(np.asarray(tangent))) and np.isfinite(float(grad)), level
+        assert abs(float(grad)) > 1e-3
+        np.testing.assert_allclose(float(jnp.mean(tangent)), float(grad), rtol=1e-4, err_msg=str(level))
+
+
 # --------------------------------------------------------------------------- dial sweep
 
 #: Values past every dial's sensible range that must be refused at construction.

@@ -66,8 +66,12 @@ ROUNDING_ULPS = 8.0
 
 
 def rounding_floor(p):
-    """ROUNDING_ULPS · machine epsilon · max|pᵢ|: what a distance at p cannot resolve."""
-    return ROUNDING_ULPS * jnp.finfo(p.dtype).eps * jnp.max(jnp.abs(p))
+    """ROUNDING_ULPS · machine epsilon · max|pᵢ|: what a distance at p cannot resolve.
+
+    A tolerance, with no gradient. (The derivative of `jnp.max` divides by the number of
+    components equal to the maximum; where XLA computes p twice with different roundings
+    none is, and it was 0/0: NaN gradients of every shading point that spawns a ray.)"""
+    return ROUNDING_ULPS * jnp.finfo(p.dtype).eps * jax.lax.stop_gradient(jnp.max(jnp.abs(p)))
 
 
 def hit_epsilon(settings, t, cone):
