@@ -79,6 +79,29 @@ def test_exact_primitive_has_unit_gradient(name):
     np.testing.assert_allclose(grad_norms(node, p), 1.0, atol=1e-9)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_the_cone_has_its_faces_normals_on_its_surface(dtype):
+    """Points exactly on the cone (f = 0 in floating point: on the base, and on the side
+    where r·h + (y − h)·R cancels exactly), as a hit that Newton polished onto the
+    surface: ∇f is the face's outward unit normal, (0, −1, 0) on the base and
+    (h x/r, R, h z/r)/√(R² + h²) on the side. (The sqrt of the squared distance has no
+    derivative at 0: the gradient was zero there, and the pixel black.)"""
+    radius, height = 0.5, 1.0
+    node = sdf.Cone(radius, height)
+    theta = np.linspace(0.0, 2.0 * np.pi, 7, endpoint=False)
+    ring = np.stack([np.cos(theta), np.zeros_like(theta), np.sin(theta)], axis=-1)
+    base = np.concatenate([[[0.0, 0.0, 0.0]], 0.25 * ring]).astype(dtype)
+    base_normals = np.tile([0.0, -1.0, 0.0], (len(base), 1))
+    axes = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    side = (0.25 * axes + [0.0, 0.5, 0.0]).astype(dtype)  # r = 0.25, y = 0.5
+    side_normals = (height * axes + [0.0, radius, 0.0]) / np.hypot(radius, height)
+    for p, normals in ((base, base_normals), (side, side_normals)):
+        p = jnp.asarray(p, dtype)
+        assert np.all(np.asarray(jax.vmap(node)(p)) == 0.0)
+        grads = np.asarray(jax.vmap(jax.grad(node))(p))
+        np.testing.assert_allclose(grads, normals, atol=1e-6 if dtype == jnp.float32 else 1e-12)
+
+
 @pytest.mark.parametrize("radii", [(1.0, 0.5, 0.25), (0.3, 2.0, 0.8), (1.0, 1.0, 1.0)])
 def test_ellipsoid_is_a_bound_and_exact_on_the_surface(radii):
     node = sdf.Ellipsoid(radii)

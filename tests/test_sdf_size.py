@@ -23,16 +23,18 @@ _spec.loader.exec_module(sdf_eqns)
 # Equations of make_jaxpr(vmap(value_and_grad(node))) (inner jaxprs included) for the
 # nodes of experiments/bench/sdf_eqns.py, with x64 on (jax 0.10.2: the counts before
 # the compact forms were Box 99, Cone 252, Cylinder 127, Rotate(Sphere) 115, Twist 83,
-# SmoothUnion 109, showcase surface 2489; after: 57, 147, 78, 47, 49, 75, 1485). A budget a little above today's count: a change that adds
-# equations to every evaluation of a scene shows here.
+# SmoothUnion 109, showcase surface 2489; after: 57, 147, 78, 47, 49, 75, 1485; the
+# cone's face distances at the surface, session 31: Cone 174, showcase surface 1564). A
+# budget a little above today's count: a change that adds equations to every evaluation
+# of a scene shows here.
 BUDGET = {
-    "Sphere": 16, "Plane": 13, "Box": 60, "RoundBox": 62, "Torus": 42, "Cone": 154,
+    "Sphere": 16, "Plane": 13, "Box": 60, "RoundBox": 62, "Torus": 42, "Cone": 180,
     "Capsule": 34, "Cylinder": 82, "Ellipsoid": 75, "Translate(Sphere)": 18,
     "Rotate(Sphere)": 50, "Transform(Sphere)": 22, "Scale(Sphere)": 33,
     "Repeat(Sphere)": 48, "Twist(Sphere)": 52, "Bend(Sphere)": 52,
     "Displace(Sphere)": 38, "Union(Sphere,Sphere)": 44, "Intersection(Sphere,Box)": 88,
     "Subtraction(Sphere,Sphere)": 50, "SmoothUnion(Sphere,Sphere)": 79,
-    "showcase surface": 1560,
+    "showcase surface": 1570,
 }
 
 
@@ -193,6 +195,11 @@ def test_compact_forms_equal_the_previous_formulas(name, second):
         assert np.all(np.isfinite(a))
         if i >= 2 + len(theta):
             a[TIES], b[TIES] = 0.0, 0.0
+        if i == 1 and name in ("cone", "flat_cone"):
+            # on the surface the formula's sqrt has no derivative (the cone's faces give
+            # theirs: tests/test_sdf.py::test_the_cone_has_its_faces_normals_on_its_surface)
+            surface = np.abs(np.asarray(want[0])) < 1e-12
+            a[surface], b[surface] = 0.0, 0.0
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
 
 
