@@ -134,9 +134,9 @@ class KernelOptions:
                          compiled 1.04–2.3× faster, its step −19 % to +35 %
                          (docs/performance.md, "XLA compiler options"). Images agree
                          with "default" to rounding except at pixels that "default"
-                         itself renders unstably (there). The `jaxrt render` command
-                         uses "fast-compile" unless told
-                         otherwise (`jaxrt.cli`); the library's default stays "default".
+                         itself renders unstably (there). The library and the
+                         `jaxrt render` command use "default" (`--set
+                         kernel.xla=fast-compile` for the preset).
     """
 
     interpret: bool | None = None
