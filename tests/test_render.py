@@ -192,8 +192,9 @@ def test_aovs_left_out_are_none_and_leave_rgb_unchanged(backend):
     some = jr.render(scene, camera, settings.replace(aovs=["depth"]))  # a TOML list
     assert some.normal is None and some.albedo is None and some.steps is None
     assert some.coverage is None
-    np.testing.assert_array_equal(np.asarray(some.rgb), np.asarray(full.rgb))
-    np.testing.assert_array_equal(np.asarray(some.depth), np.asarray(full.depth))
+    # two programs: equal to rounding (a few ulps where XLA fuses them differently)
+    np.testing.assert_array_max_ulp(np.asarray(some.rgb), np.asarray(full.rgb), maxulp=16)
+    np.testing.assert_array_max_ulp(np.asarray(some.depth), np.asarray(full.depth), maxulp=16)
 
 
 @pytest.mark.parametrize("platform,auto", [("cpu", 4096), ("gpu", 1 << 18)])
