@@ -198,7 +198,7 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     p_hat = jax.lax.stop_gradient(p_star)
     f, grad, hess = value_grad_hessian(sdf, p_hat)
     f = f + dot(grad, p_star - p_hat)
-    grad_norm = jnp.sqrt(dot(grad, grad))
+    grad_norm = safe_norm(grad)
     n = normalize(grad)
     radius = jax.lax.stop_gradient(cone[0] + cone[1] * t_star)  # half a pixel at t*
     d_origin, d_direction = jacobian
@@ -214,8 +214,12 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     # the direction of n* (on the edge itself either face's gradient may be taken).
     p_s = tape.march(project_to_surface, sdf, p_star, n)
     offset = jax.lax.stop_gradient(EDGE_OFFSET * (distance + 2.0 * radius))
-    f_s, grad_s = value_and_gradient(lambda q: sdf(q), p_s + offset * n)
-    grad_s = jax.lax.stop_gradient(grad_s)
+    # f_s with the shape's derivative, ∇f of the shape held fixed: the derivative of
+    # `value_and_gradient`'s value would differentiate its reverse pass too, which at a
+    # box's edge XLA:CPU at -O0 made NaN (tests/test_silhouette.py, box_position).
+    q_s = p_s + offset * n
+    f_s = sdf(q_s)
+    _, grad_s = value_and_gradient(lambda q: stop_gradient(sdf)(q), q_s)
     norm_s = jnp.sqrt(dot(grad_s, grad_s))
     ok_s = norm_s > 0.0
     distance = distance + jnp.where(

@@ -152,6 +152,28 @@ def _compare(case, size, reference_spp, estimator_spp=4):
     return estimate, reference
 
 
+def test_outline_gradients_in_forward_and_reverse_mode_are_finite_and_agree():
+    """The box's outline, 4 jittered samples per pixel, compiled at XLA:CPU -O0: the
+    gradient of the region's mean equals its jvp. (The outline's shape term, f(p_s) with
+    the shape's derivative, came from `value_and_gradient`, whose reverse pass was then
+    differentiated too: at -O0 its gradient was NaN, the jvp finite.)"""
+    build, theta, _, view, region = CASES["box_position"]
+    camera = jr.PerspectiveCamera(width=16, height=16, **view)
+    settings = BASE.replace(silhouette=True, spp=4)
+
+    def mean(p):
+        return jnp.mean(jr.render(build(p), camera, settings).rgb[region])
+
+    def both(p):
+        return jax.grad(mean)(p), jax.jvp(mean, (p,), (jnp.ones_like(p),))[1]
+
+    p = jnp.asarray(theta)
+    options = {"xla_backend_optimization_level": 0}
+    grad, tangent = jax.jit(both).lower(p).compile(compiler_options=options)(p)
+    assert np.isfinite(float(grad)) and abs(float(grad)) > 1e-2
+    assert float(grad) == pytest.approx(float(tangent), rel=1e-9)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_outline_gradients_match_finite_differences_of_32x32_supersampled_renders(case):
