@@ -17,7 +17,7 @@ from .march import tape
 from .march.shadow import SoftShadow, march as soft_shadow_march
 from .march.sphere import SphereTracing
 from .sdf.base import as_float, check, non_negative
-from .vecmath import dot, normalize, safe_div, safe_norm, stop_gradient
+from .vecmath import clip, dot, normalize, safe_div, safe_norm, stop_gradient
 
 
 class PointLight(eqx.Module):
@@ -112,6 +112,6 @@ def penumbra(sdf, origin, wi, found, options):
     safe_t = jnp.where(lowered, t, 1.0)
     # f at the minimiser is in the record: evaluated only where differentiated.
     d = sign * evaluated(sdf, origin + safe_t * wi, found["f"]) * inv_lipschitz
-    h = jnp.clip(jnp.asarray(options.penumbra, dtype) * d / safe_t, 0.0, 1.0)
+    h = clip(jnp.asarray(options.penumbra, dtype) * d / safe_t, 0.0, 1.0)
     value = h * h * (3.0 - 2.0 * h)
     return jnp.where(found["blocked"], 0.0, jnp.where(lowered, value, 1.0)).astype(dtype)

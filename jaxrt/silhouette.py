@@ -110,7 +110,7 @@ import jax.numpy as jnp
 from .march import SphereTracing, tape
 from .march.silhouette import (EDGE_OFFSET, GOLDEN_STEPS, ILLINOIS_STEPS, INSIDE_AIM,  # noqa: F401
                                PROJECT_STEPS, inner_hit, project_to_surface, refine_closest)
-from .trace import sphere_trace, stop_gradient, value_and_gradient
+from .trace import evaluated, sphere_trace, stop_gradient, value_and_gradient
 from .vecmath import dot, normalize, safe_div, safe_norm
 
 def ramp(u):
@@ -214,12 +214,12 @@ def coverage(sdf, origin, direction, cone, jacobian, hit, settings):
     # the direction of n* (on the edge itself either face's gradient may be taken).
     p_s = tape.march(project_to_surface, sdf, p_star, n)
     offset = jax.lax.stop_gradient(EDGE_OFFSET * (distance + 2.0 * radius))
-    # f_s with the shape's derivative, ∇f of the shape held fixed: the derivative of
-    # `value_and_gradient`'s value would differentiate its reverse pass too, which at a
-    # box's edge XLA:CPU at -O0 made NaN (tests/test_silhouette.py, box_position).
+    # f and ∇f of the shape held fixed, then f with the shape's derivative from a JVP
+    # (`evaluated`): differentiating `value_and_gradient`'s value differentiated its
+    # reverse pass too, NaN at a box's outline when compiled at XLA:CPU -O0.
     q_s = p_s + offset * n
-    f_s = sdf(q_s)
-    _, grad_s = value_and_gradient(lambda q: stop_gradient(sdf)(q), q_s)
+    f_s, grad_s = value_and_gradient(lambda q: stop_gradient(sdf)(q), q_s)
+    f_s = evaluated(sdf, q_s, f_s)
     norm_s = jnp.sqrt(dot(grad_s, grad_s))
     ok_s = norm_s > 0.0
     distance = distance + jnp.where(

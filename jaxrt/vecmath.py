@@ -121,7 +121,7 @@ def normalize(x, fallback=None):
     zero gradient. (1/sqrt(max(|x|², TINY)) is finite everywhere, so one select, for
     the fallback, guards value and gradient.)"""
     sq = jnp.sum(x * x, axis=-1, keepdims=True)
-    inv = 1.0 / jnp.sqrt(jnp.maximum(sq, TINY))
+    inv = 1.0 / jnp.sqrt(maximum(sq, TINY))
     if fallback is None:
         fallback = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], x.dtype), x.shape)
     return select(sq > TINY, x * inv, fallback)

@@ -2,7 +2,7 @@
 
 import jax.numpy as jnp
 
-from ..vecmath import dot
+from ..vecmath import dot, maximum
 from ._util import above, half_vector, pow_pos, scalar
 from .base import Material, rgb
 from .scattering import fresnel_schlick
@@ -39,7 +39,7 @@ class AshikhminShirley(Material):
         wm = half_vector(wo, wi)
         hk = jnp.where(ok, dot(wi, wm), 1.0)
         spec = ((n + 1.0) / (8.0 * jnp.pi) * pow_pos(wm[2], n)
-                / (hk * jnp.maximum(ci, co)) * fresnel_schlick(hk, self.rs))
+                / (hk * maximum(ci, co)) * fresnel_schlick(hk, self.rs))
         diff = (28.0 / (23.0 * jnp.pi) * self.rd * (1.0 - self.rs)
                 * (1.0 - (1.0 - 0.5 * ci) ** 5) * (1.0 - (1.0 - 0.5 * co) ** 5))
         return jnp.where(ok, spec + diff, 0.0)

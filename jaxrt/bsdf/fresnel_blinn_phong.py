@@ -6,7 +6,7 @@ benchmark scene (`configs/scenes/warp_raymarch.toml`) is the same picture.
 
 import jax.numpy as jnp
 
-from ..vecmath import normalize, safe_div
+from ..vecmath import clip, normalize, safe_div
 from .base import Material, rgb
 
 
@@ -37,8 +37,8 @@ class FresnelBlinnPhong(Material):
         cos_i = wi[2]
         above = (wo[2] > 0.0) & (cos_i > 0.0)
         h = normalize(wo + wi)
-        fresnel = self.f0 + (1.0 - self.f0) * jnp.clip(1.0 - jnp.sum(h * wi), 0.0, 1.0) ** 5
-        lobe = jnp.clip(h[2], 0.0, 1.0) ** self.exponent
+        fresnel = self.f0 + (1.0 - self.f0) * clip(1.0 - jnp.sum(h * wi), 0.0, 1.0) ** 5
+        lobe = clip(h[2], 0.0, 1.0) ** self.exponent
         value = (1.0 - fresnel) + self.specular * fresnel * safe_div(lobe, jnp.where(above, cos_i, 1.0))
         return jnp.where(above, self.scale * self.color * value, 0.0)
 

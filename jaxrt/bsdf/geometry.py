@@ -9,7 +9,7 @@ gradients, and 0 when either direction is below the horizon or sees the back of 
 
 import jax.numpy as jnp
 
-from ..vecmath import dot, safe_div
+from ..vecmath import dot, minimum, safe_div
 
 
 def _visible(wo, wi, wm):
@@ -33,7 +33,7 @@ def g_cook_torrance(distribution, wo, wi, wm):
     nh = wm[..., 2]
     g_o = safe_div(2.0 * nh * wo[..., 2], dot(wo, wm), 1.0)
     g_i = safe_div(2.0 * nh * wi[..., 2], dot(wi, wm), 1.0)
-    return jnp.where(ok, jnp.minimum(1.0, jnp.minimum(g_o, g_i)), 0.0)
+    return jnp.where(ok, minimum(1.0, minimum(g_o, g_i)), 0.0)
 
 
 def g_smith_separable(distribution, wo, wi, wm):

@@ -19,7 +19,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import jax.scipy.special as jss
 
-from ..vecmath import dot, safe_div, safe_sqrt
+from ..vecmath import dot, maximum, safe_div, safe_sqrt
 
 #: Roughness below this is treated as this value: D peaks at 1/(π α²) ≈ 3e7, which keeps
 #: D · radiance far from float32 overflow; a smoother surface should be a `Mirror`.
@@ -37,7 +37,7 @@ def _scalar(x, name):
 
 def _cos_sin2(w):
     c = w[..., 2]
-    return c, jnp.maximum(0.0, 1.0 - c * c)
+    return c, maximum(0.0, 1.0 - c * c)
 
 
 class MicrofacetDistribution(eqx.Module):
@@ -80,7 +80,7 @@ def _beckmann_lambda_numerator(w, alpha):
     a = c / (alpha * jnp.where(ok, s, 1.0))
     n = alpha * s * jnp.exp(-a * a) / _SQRT_PI - c * jss.erfc(a)
     # N > 0 mathematically; rounding in the cancellation at large a can dip below 0.
-    return jnp.where(ok, jnp.maximum(n, 0.0), 0.0)
+    return jnp.where(ok, maximum(n, 0.0), 0.0)
 
 
 def _beckmann_d(wm, alpha):

@@ -14,7 +14,7 @@ passes the same `eta` for both sides of one surface.
 
 import jax.numpy as jnp
 
-from ..vecmath import dot, safe_div, safe_sqrt
+from ..vecmath import clip, dot, maximum, minimum, safe_div, safe_sqrt
 
 
 def reflect(wi, n):
@@ -48,7 +48,7 @@ def refract(wi, n, eta):
     inside = cos_i < 0.0
     eta = jnp.where(inside, safe_div(1.0, eta, 1.0), eta)
     n = jnp.where(inside, -n, n)
-    cos_i = jnp.minimum(jnp.abs(cos_i), 1.0)
+    cos_i = minimum(jnp.abs(cos_i), 1.0)
     # cos²θt = 1 − sin²θi / eta² = (eta² − 1 + cos²θi) / eta², in the form that is exact
     # for eta = 1 (no cancellation near grazing).
     cos2_t = safe_div(eta * eta - 1.0 + cos_i * cos_i, eta * eta, -1.0)
@@ -68,7 +68,7 @@ def fresnel_schlick(cos_theta, f0):
             [0, 1] (negative values are treated as grazing).
         f0: reflectance at normal incidence, scalar or [3].
     """
-    c = jnp.clip(cos_theta, 0.0, 1.0)
+    c = clip(cos_theta, 0.0, 1.0)
     return f0 + (1.0 - f0) * (1.0 - c) ** 5
 
 
@@ -97,7 +97,7 @@ def fresnel_dielectric(cos_theta_i, eta):
     """
     inside = cos_theta_i < 0.0
     eta = jnp.where(inside, safe_div(1.0, eta, 1.0), eta)
-    cos_i = jnp.minimum(jnp.abs(cos_theta_i), 1.0)
+    cos_i = minimum(jnp.abs(cos_theta_i), 1.0)
     # cos²θt = (eta² − 1 + cos²θi) / eta²: exact for eta = 1.
     cos2_t = safe_div(eta * eta - 1.0 + cos_i * cos_i, eta * eta, -1.0)
     # At cos θt = 0 exactly the formula below gives 1 too, except at grazing with
@@ -125,9 +125,9 @@ def fresnel_conductor(cos_theta_i, eta, k):
         eta, k: real and imaginary parts of the index relative to the outside medium,
             scalars or [3] (RGB); the result broadcasts to their shape.
     """
-    cos_i = jnp.minimum(jnp.abs(cos_theta_i), 1.0)
+    cos_i = minimum(jnp.abs(cos_theta_i), 1.0)
     cos2 = cos_i * cos_i
-    sin2 = jnp.maximum(0.0, 1.0 - cos2)
+    sin2 = maximum(0.0, 1.0 - cos2)
     eta2 = eta * eta
     k2 = k * k
     t0 = eta2 - k2 - sin2

@@ -32,7 +32,7 @@ from ._util import scalar
 from .base import Material, rgb
 from .conductors import conductor_preset
 from .scattering import fresnel_conductor, fresnel_dielectric
-from ..vecmath import safe_div
+from ..vecmath import minimum, safe_div
 
 #: Wavelength (nm) at which a dispersive index is evaluated in RGB rendering: the
 #: helium d line, where catalogues quote n_d.
@@ -259,7 +259,7 @@ class Whitted(Material):
             return self.c_refl, jnp.zeros_like(self.c_refl), jnp.ones_like(self.eta)
         # Total internal reflection: sin²θt = sin²θo / η'² ≥ 1, η' = η (entering) or 1/η.
         eta_p = jnp.where(cos_o >= 0.0, self.eta, safe_div(1.0, self.eta, 1.0))
-        sin2_t = safe_div(1.0 - jnp.minimum(cos_o * cos_o, 1.0), eta_p * eta_p, 1.0)
+        sin2_t = safe_div(1.0 - minimum(cos_o * cos_o, 1.0), eta_p * eta_p, 1.0)
         tir = sin2_t >= 1.0
         return (jnp.where(tir, self.c_refl + self.c_trans, self.c_refl),
                 jnp.where(tir, 0.0, self.c_trans), self.eta)

@@ -6,6 +6,7 @@ import jax.numpy as jnp
 from ._util import above, half_vector, scalar
 from .base import Material, rgb
 from .microfacet import MIN_ALPHA
+from ..vecmath import maximum
 
 _NORMALIZATIONS = ("ward", "duer")
 
@@ -47,7 +48,7 @@ class Ward(Material):
         co = jnp.where(ok, wo[2], 1.0)
         ci = jnp.where(ok, wi[2], 1.0)
         hz = jnp.where(ok, half_vector(wo, wi)[2], 1.0)
-        tan2 = jnp.maximum(0.0, 1.0 - hz * hz) / (hz * hz)
+        tan2 = maximum(0.0, 1.0 - hz * hz) / (hz * hz)
         norm = jnp.sqrt(co * ci) if self.normalization == "ward" else co * ci
         spec = jnp.exp(-tan2 / (alpha * alpha)) / (4.0 * jnp.pi * alpha * alpha * norm)
         return jnp.where(ok, self.rho_d / jnp.pi + self.rho_s * spec, 0.0)

@@ -50,7 +50,7 @@ def op_smooth_union(d1, d2, k):
     from d(h² k/4) = (h k/2) dh + (h²/4) dk and k dh = du − h dk, du = dk − s d|d1 − d2|
     where the blend is active (h > 0; elsewhere h = 0 and both terms vanish).
     """
-    h = safe_div(jnp.maximum(k - jnp.abs(d1 - d2), 0.0), k)
+    h = safe_div(_max(k - jnp.abs(d1 - d2), 0.0), k)
     return _min(d1, d2) - h * h * k * 0.25
 
 
@@ -58,7 +58,7 @@ def op_smooth_union(d1, d2, k):
 def _op_smooth_union_jvp(primals, tangents):
     (d1, d2, k), (t1, t2, tk) = primals, tangents
     d = d1 - d2
-    h = safe_div(jnp.maximum(k - jnp.abs(d), 0.0), k)
+    h = safe_div(_max(k - jnp.abs(d), 0.0), k)
     half = 0.5 * h
     dm = select(d2 < d1, t2, t1)
     dd = select(d >= 0.0, t1 - t2, t2 - t1)
