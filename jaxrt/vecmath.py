@@ -8,6 +8,11 @@ custom JVP that puts the guard in the derivative only: the forward program is a 
 `sqrt(max(x, 0))` (a min/max and a square root, no selects: the fused kernels of
 `jaxrt.kernels` run forward programs only) and the derivative is the double-`where`
 one.
+
+Clamps of computed values on a differentiated path use `maximum`, `minimum` and `clip`
+here, whose derivatives follow a comparison: `jnp.maximum`'s derivative tests which
+operand *equals* the result, and where XLA computes an operand twice and rounds the
+copies apart, neither does and the derivative is 0.
 """
 
 from functools import partial
