@@ -48,8 +48,10 @@ def _accepted(flags):
 #: The LLVM level of a run that selects the slow tests (`pytest -m slow`): they run their
 #: programs for longer (fits, large renders), and at -O0 one of them (the free-form fit's
 #: `render_views`) grew past 16 GB and five failed (session 31). Session 32 fixed two
-#: causes; at -O0 the pose and materials quick studies and the scan tree's replay still
-#: fail (docs/performance.md, "the slow tests at -O0").
+#: causes; the pose and materials quick studies and the scan tree's replay still fail at
+#: -O0, and session 33 found each failing result right at -O1 and in the program's parts
+#: compiled alone: -O0 miscomputes in those large programs (docs/performance.md,
+#: "Session 33").
 SLOW_TESTS_LEVEL = "1"
 
 
