@@ -50,9 +50,9 @@ def _accepted(flags):
 #: `render_views`) grew past 16 GB and five failed (session 31). Session 32 fixed two
 #: causes; the pose and materials quick studies and the scan tree's replay still fail at
 #: -O0. Session 33 found them configuration-dependent: each passes at -O1; the pose
-#: study's NaN VJP is finite compiled alone at -O0; the materials study and the replay
-#: fail with one of XLA:CPU's emitters at -O0 and pass with the other (docs/performance.md,
-#: "Session 33").
+#: study's NaN VJP is finite compiled alone at -O0; the materials study fails at -O0 with
+#: the legacy emitter only, and the replay test fails a different variant with each
+#: emitter (docs/performance.md, "Session 33").
 SLOW_TESTS_LEVEL = "1"
 
 
