@@ -133,7 +133,7 @@ def _recorded(kernel, params, samples, settings, grid, offset):
         wide = settings.kernel.replay_wide_unions
         wide = jax.default_backend() == "gpu" if wide is None else wide
         replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds, gather,  # noqa: E731
-                                      wide)
+                                      wide, settings.kernel.replay_remat)
         _, tangent = jax.jvp(replay, primals, tangents)
         return out["image"], tangent
 
@@ -173,7 +173,7 @@ def _record(kernel, params, samples, settings, grid, offset):
     return out, kinds[0]
 
 
-def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False):
+def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False, remat=False):
     """The kernel vmapped over all `samples` at once with every march read from `entries`
     (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable.
 
@@ -193,7 +193,10 @@ def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False):
     only where alive, in batches of `gather` (`tape.gathering`); the scene then enters
     unbatched, since the batches close over it.
 
-    With `wide`, stacked unions evaluate their children at once (`tape.wide_unions`)."""
+    With `wide`, stacked unions evaluate their children at once (`tape.wide_unions`).
+    With `remat`, the per-sample program is under `jax.checkpoint`: the derivative keeps
+    no intermediate of the replay, and its reverse pass recomputes them from the
+    samples, the records and the parameters (`KernelOptions.replay_remat`)."""
     dyn, static = eqx.partition(params, eqx.is_inexact_array)
     small, large = eqx.partition(dyn, lambda x: x.size <= PER_SAMPLE_MAX)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
@@ -204,6 +207,8 @@ def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False):
         with tape.replaying(entry), tape.wide_unions(wide):
             return kernel((*camera.generate_ray(s[0], s[1]), s), scene, camera)
 
+    if remat:  # the reverse pass recomputes a sample's values from its inputs
+        one = jax.checkpoint(one, prevent_cse=False)
     if not gather:
         per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, n), small)
         return jax.vmap(one)(per_sample, samples, entries)

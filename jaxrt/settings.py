@@ -122,6 +122,14 @@ class KernelOptions:
                          over them (`sdf.stack.stacked_eval`); None (default): on a
                          GPU, where each iteration of a scan is kernels of their own
                          (64 spheres, 512×512, H100: value_and_grad 9.4 → 4.9 ms).
+      replay_remat       a gradient's replay keeps none of its intermediates for the
+                         reverse pass, which recomputes them (`jax.checkpoint` over the
+                         per-sample program, `render._replay`). Off by default: on 2
+                         CPU cores it changes neither the gradient nor its time (within
+                         noise); on a GPU, where the replay's reverse pass reads its
+                         stored intermediates from memory (the Warp scene's: about 100
+                         kernels of 14–36 arrays each, 2.1 ms on an H100), it is not
+                         measured yet (docs/performance.md, "Session 34").
       xla                the XLA compiler options of every backend's render program
                          (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
                          (on a CPU: the legacy loop emitter instead of XLA's MLIR
@@ -156,6 +164,7 @@ class KernelOptions:
     plain_max_lane_ops: int = 5000
     replay_gather: int = 256
     replay_wide_unions: bool | None = None
+    replay_remat: bool = False
     xla: str = "default"
 
     def __post_init__(self):
@@ -177,8 +186,8 @@ class KernelOptions:
              "an integer ≥ 0")
         need(self.replay_wide_unions is None or isinstance(self.replay_wide_unions, bool),
              "replay_wide_unions", "true, false or None")
-        for name in ("materialize", "pallas_fma", "pallas_uniforms", "pallas_scan_loops",
-                     "pallas_fast_math"):
+        for name in ("materialize", "replay_remat", "pallas_fma", "pallas_uniforms",
+                     "pallas_scan_loops", "pallas_fast_math"):
             need(isinstance(getattr(self, name), bool), name, "true or false")
         for name in ("auto_max_lane_ops_fused", "auto_max_lane_ops_pallas", "plain_max_lane_ops"):
             need(_is_int(getattr(self, name)) and getattr(self, name) >= 0, name,

@@ -24,12 +24,13 @@ budgets (--max-steps 64 1024) and the script prints the ratios.
     python experiments/bench/gradients.py [--config configs/experiments/gradients.toml]
         [--scenes warp spheres64 showcase glass] [--size warp=2048x1024 ...]
         [--max-steps 64 1024] [--repeats N] [--backend auto] [--silhouette]
-        [--reference] [--profile CALLS] [--out out/bench_gradients]
+        [--reference] [--profile CALLS] [--set KEY=VALUE ...] [--out out/bench_gradients]
 
 Sizes default to the config's `gpu` sizes on a GPU and its `cpu` sizes elsewhere.
 """
 
 import argparse
+import dataclasses
 import json
 import resource
 import subprocess
@@ -56,6 +57,9 @@ def main(argv=None):
     ap.add_argument("--profile", type=int, default=0, metavar="CALLS",
                     help="also print the device time per kernel of value_and_grad and of the "
                          "forward, over CALLS calls under jax.profiler (gpu_profile.py)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a RenderSettings field for every scene, as `jaxrt render --set` "
+                         "(kernel.FIELD for a KernelOptions field); repeatable")
     ap.add_argument("--out", default=None)
     ap.add_argument("--one", nargs=4, metavar=("SCENE", "W", "H", "MAX_STEPS"),
                     help=argparse.SUPPRESS)  # internal: measure one configuration
@@ -66,6 +70,7 @@ def main(argv=None):
     cfg["silhouette"] = args.silhouette
     cfg["reference"] = args.reference
     cfg["profile"] = args.profile
+    cfg["set"] = args.set
     if args.one:
         name, w, h, steps = args.one
         print(json.dumps(measure(cfg, name, int(w), int(h), int(steps))))
@@ -94,7 +99,7 @@ def main(argv=None):
                    str(cfg["repeats"]), "--backend", cfg["backend"], "--one", name, str(w),
                    str(h), str(steps)]
             cmd += ["--silhouette"] * args.silhouette + ["--reference"] * args.reference
-            cmd += ["--profile", str(args.profile)]
+            cmd += ["--profile", str(args.profile)] + [f"--set={item}" for item in args.set]
             res = subprocess.run(cmd, capture_output=True, text=True)
             if res.returncode != 0:
                 print(f"{' '.join(cmd)} failed:\n{res.stderr[-3000:]}", flush=True)
@@ -151,6 +156,7 @@ def measure(cfg, name, width, height, max_steps):
 
     import jaxrt as jr
     from jaxrt import fit
+    from jaxrt.cli import parse_overrides
 
     spec = cfg["scenes"][name]
     if spec["file"] == "spheres64":
@@ -160,6 +166,9 @@ def measure(cfg, name, width, height, max_steps):
         scene, camera, settings = jr.config.load(ROOT / spec["file"], width=width, height=height)
     overrides = {k: v for k, v in cfg.get("settings", {}).items() if not isinstance(v, dict)}
     overrides.update(cfg.get("settings", {}).get(name, {}))
+    overrides.update(parse_overrides(cfg["set"]))
+    if isinstance(overrides.get("kernel"), dict):  # merged into the scene's own options
+        overrides["kernel"] = dataclasses.replace(settings.kernel, **overrides["kernel"])
     settings = settings.replace(max_steps=max_steps, shadow_steps=max_steps,
                                 backend=cfg["backend"], silhouette=cfg["silhouette"], **overrides)
     brighter = eqx.tree_at(lambda s: s.lights, scene,
@@ -208,7 +217,7 @@ def measure(cfg, name, width, height, max_steps):
     stats = device.memory_stats() if hasattr(device, "memory_stats") else None
     row = {
         "scene": name, "width": width, "height": height, "max_steps": max_steps,
-        "backend": settings.backend, "silhouette": settings.silhouette,
+        "backend": settings.backend, "silhouette": settings.silhouette, "set": cfg["set"],
         "device": device.device_kind, "jax": jax.__version__,
         "render_s": median(times["render"]), "value_and_grad_s": median(times["grad"]),
         "ratio": ratio("grad"), "compile_render_s": compile_render,
@@ -262,7 +271,7 @@ def _format(row):
             f"{row['compile_grad_s']:.0f} s  grad temp {mb(row['grad_temp_bytes'])}"
             f"  peak {mb(row['peak_device_bytes'])}  peak RSS {mb(row['peak_rss_bytes'])}"
             f"  ({row['gradient_floats']} floats, finite: {row['finite']}, {row['device']},"
-            f" jax {row['jax']})")
+            f" jax {row['jax']})" + (f"  --set {' '.join(row['set'])}" if row["set"] else ""))
 
 
 if __name__ == "__main__":
