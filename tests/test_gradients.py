@@ -724,7 +724,9 @@ def test_replay_recomputed_in_the_reverse_pass_has_the_same_gradient():
     dyn, static = eqx.partition((scene, camera), eqx.is_inexact_array)
     grads, remats = {}, {}
     for remat in (False, True):
-        def loss(d, s=settings.replace(kernel=jr.KernelOptions(replay_remat=remat))):
+        s = settings.replace(kernel=jr.KernelOptions(replay_remat=remat))
+
+        def loss(d, s=s):
             return jnp.sum(jr.render(*eqx.combine(d, static), s).rgb * weights)
 
         grad_fn = jax.value_and_grad(loss)
