@@ -126,10 +126,11 @@ class KernelOptions:
                          reverse pass, which recomputes them (`jax.checkpoint` over the
                          per-sample program, `render._replay`). Off by default: on 2
                          CPU cores it changes neither the gradient nor its time (within
-                         noise); on a GPU, where the replay's reverse pass reads its
-                         stored intermediates from memory (the Warp scene's: about 100
-                         kernels of 14–36 arrays each, 2.1 ms on an H100), it is not
-                         measured yet (docs/performance.md, "Session 34").
+                         noise). On a GPU the reverse pass reads what the replay
+                         stored (the Warp scene's largest kernels read 14–36 arrays
+                         of one value per ray each; the replay and its reverse pass
+                         took 2.1 ms on an H100); the option is not measured there
+                         yet (docs/performance.md, "Session 34").
       xla                the XLA compiler options of every backend's render program
                          (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
                          (on a CPU: the legacy loop emitter instead of XLA's MLIR

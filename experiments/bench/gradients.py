@@ -71,6 +71,10 @@ def main(argv=None):
     cfg["reference"] = args.reference
     cfg["profile"] = args.profile
     cfg["set"] = args.set
+    own = {"max_steps", "shadow_steps", "backend", "silhouette"}  # the script's own options
+    for item in args.set:
+        if item.partition("=")[0].strip() in own:
+            ap.error(f"--set {item}: use --max-steps, --backend or --silhouette")
     if args.one:
         name, w, h, steps = args.one
         print(json.dumps(measure(cfg, name, int(w), int(h), int(steps))))
