@@ -124,13 +124,13 @@ class KernelOptions:
                          (64 spheres, 512×512, H100: value_and_grad 9.4 → 4.9 ms).
       replay_remat       a gradient's replay keeps none of its intermediates for the
                          reverse pass, which recomputes them (`jax.checkpoint` over the
-                         per-sample program, `render._replay`). Off by default: on 2
-                         CPU cores it changes neither the gradient nor its time (within
-                         noise). On a GPU the reverse pass reads what the replay
-                         stored (the Warp scene's largest kernels read 14–36 arrays
-                         of one value per ray each; the replay and its reverse pass
-                         took 2.1 ms on an H100); the option is not measured there
-                         yet (docs/performance.md, "Session 34").
+                         per-sample program with `prevent_cse=False`,
+                         `render._replay`). Off: on 2 CPU cores it changes neither
+                         the gradient nor its time (within noise); on an H200 the same
+                         with `prevent_cse=True` made the Warp scene's gradient slower
+                         (4.47 against 3.35 ms) and larger (1 248 against 742 MiB);
+                         with `prevent_cse=False` it is not measured on a GPU
+                         (docs/performance.md, "Session 34" and "Session 32").
       xla                the XLA compiler options of every backend's render program
                          (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
                          (on a CPU: the legacy loop emitter instead of XLA's MLIR

@@ -94,8 +94,9 @@ def suite_cache_folder():
     return Path(value).expanduser() if value else default_path().parent / "tests"
 
 
-if suite_cache_folder() is not None:  # every program: the suite's are small and many
-    jax.config.update("jax_compilation_cache_dir", str(suite_cache_folder()))
+_SUITE_CACHE = suite_cache_folder()
+if _SUITE_CACHE is not None:  # every program: the suite's are small and many
+    jax.config.update("jax_compilation_cache_dir", str(_SUITE_CACHE))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
