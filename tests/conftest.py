@@ -60,7 +60,9 @@ SLOW_TESTS_LEVEL = "1"
 
 def pytest_configure(config):
     """`TEST_XLA_FLAGS` into $XLA_FLAGS, before XLA starts (it reads them when its first
-    backend is made, not at `import jax`); xdist's workers inherit them."""
+    backend is made, not at `import jax`); xdist's workers inherit them. And the suite's
+    compilation cache (`_use_suite_cache`)."""
+    _use_suite_cache(config)
     if os.environ.get("JAXRT_TEST_XLA", "fast-compile") == "default":
         return
     wanted = dict(TEST_XLA_FLAGS)
@@ -94,9 +96,15 @@ def suite_cache_folder():
     return Path(value).expanduser() if value else default_path().parent / "tests"
 
 
-_SUITE_CACHE = suite_cache_folder()
-if _SUITE_CACHE is not None:  # every program: the suite's are small and many
-    jax.config.update("jax_compilation_cache_dir", str(_SUITE_CACHE))
+def _use_suite_cache(config):
+    """The suite's compilation cache on (`suite_cache_folder`), for every program: the
+    suite's are small and many. Not for a run that selects the slow tests: there, with
+    the cache filled, a worker grew to 18.9 GB and was killed for memory (2 cores,
+    24 GB, session 34), where the same run with the cache empty passed."""
+    folder = suite_cache_folder()
+    if folder is None or config.getoption("markexpr") != "not slow":
+        return
+    jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
