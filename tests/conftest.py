@@ -4,7 +4,7 @@ fast-compile flags.
 jaxrt's own cache (the CLI's traced programs and its folder) stays off in tests
 (`JAXRT_NO_CACHE=1`, unless the environment sets it): the tests that check it turn it
 on themselves, in a folder of their own. JAX's persistent compilation cache serves the
-suite's programs instead, in a folder of the suite's (`suite_cache_folder`): the first
+suite's programs instead (not a slow run's), in a folder of the suite's (`suite_cache_folder`): the first
 run of a checkout writes every program there, and a later run reads back those whose
 code did not change. On 2 cores (jax 0.10.2, session 34) the README's `pytest` took
 370 s without it, 410 s writing it and 273 s reading it back.
