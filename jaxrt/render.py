@@ -5,6 +5,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import sharding, silhouette, xla
 from .camera import pixel_samples
@@ -119,6 +120,11 @@ def _recorded(kernel, params, samples, settings, grid, offset):
     "jax" path, whose loops are not differentiated either).
     """
     dyn, static = eqx.partition(params, eqx.is_array)
+    gather = _replay_gathers(settings, params[0])
+    wide = settings.kernel.replay_wide_unions
+    wide = jax.default_backend() == "gpu" if wide is None else wide
+    if _replays_in_kernel(settings, params):
+        return _recorded_vjp(kernel, dyn, static, samples, settings, grid, offset, gather, wide)
 
     @jax.custom_jvp
     def image(dyn_, s):  # a plain render: the kernel alone, no tape written
@@ -129,15 +135,95 @@ def _recorded(kernel, params, samples, settings, grid, offset):
         out, kinds = _record(kernel, eqx.combine(primals[0], static), primals[1], settings,
                              grid, offset)
         entries = jax.lax.stop_gradient(out["tape"])
-        gather = _replay_gathers(settings, params[0])
-        wide = settings.kernel.replay_wide_unions
-        wide = jax.default_backend() == "gpu" if wide is None else wide
         replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds, gather,  # noqa: E731
                                       wide, settings.kernel.replay_remat)
         _, tangent = jax.jvp(replay, primals, tangents)
         return out["image"], tangent
 
     return image(dyn, samples)
+
+
+def _replays_in_kernel(settings, params):
+    """Whether a derivative of the render differentiates its replay in a lane kernel
+    (`_recorded_vjp`): `KernelOptions.replay_kernel`, for scenes whose floats are all
+    small (a per-sample cotangent of a voxel grid would be a lane per voxel)."""
+    leaves = jax.tree_util.tree_leaves(eqx.filter(params, eqx.is_inexact_array))
+    return settings.kernel.replay_kernel and all(x.size <= PER_SAMPLE_MAX for x in leaves)
+
+
+def _recorded_vjp(kernel, dyn, static, samples, settings, grid, offset, gather, wide):
+    """`_recorded` in reverse mode only, with the replay's derivative in the lane kernel.
+
+    The forward pass runs the recording kernel (`_record`); the backward pass runs a
+    second lane kernel whose one-sample program is the VJP of one sample's replay (the
+    cotangent of that sample's outputs in, its cotangents of the scene's and camera's
+    floats out), summed over the samples in the kernel's tiles (`map_samples` with
+    `summed`). The replay's intermediates never leave the kernel: no per-sample array
+    but the records and the image's cotangent is read or written, where the vmapped
+    replay's reverse pass reads what its forward stored (on a GPU, 99 kernels
+    re-reading 10–20 per-sample arrays each: docs/performance.md, "Session 34").
+    The gradient is the vmapped replay's (`_replay`) to rounding; it is that
+    program's "auto" fall-back. No forward mode (a `custom_vjp`)."""
+    kinds = []
+
+    @jax.custom_vjp
+    def image(dyn_, s):
+        return _fused(*eqx.combine(dyn_, static), s, settings, kernel, grid, offset)
+
+    def image_fwd(dyn_, s):
+        out, kinds_ = _record(kernel, eqx.combine(dyn_, static), s, settings, grid, offset)
+        kinds[:] = [kinds_]
+        return out["image"], (dyn_, s, out["tape"])
+
+    def image_bwd(res, cotangent):
+        dyn_, s, entries = res
+        floats, ints = eqx.partition(dyn_, eqx.is_inexact_array)
+        grads = _replay_vjp(kernel, eqx.combine(dyn_, static), s, entries, kinds[0], cotangent,
+                            settings, grid, offset, gather, wide)
+        zeros = jax.tree_util.tree_map(lambda x: np.zeros(x.shape, jax.dtypes.float0), ints)
+        return eqx.combine(grads, zeros), jnp.zeros_like(s)
+
+    image.defvjp(image_fwd, image_bwd)
+    return image(dyn, samples)
+
+
+def _replay_vjp(kernel, params, samples, entries, kinds, cotangent, settings, grid, offset,
+                gather, wide):
+    """Σ_samples (∂ replay(sample) / ∂ floats)ᵀ · cotangent(sample): the gradient of the
+    render's floats (a pytree of `params` with None at the rest), each sample's
+    VJP of its replay in one lane kernel (`map_samples`, `summed`). Its "auto"
+    fall-back is the VJP of the vmapped replay (`_replay`)."""
+    from .kernels.fused import map_samples
+
+    float_out = {k: v.dtype != jax.dtypes.float0 for k, v in cotangent.items()}
+    cotangent = {k: v for k, v in cotangent.items() if float_out[k]}
+
+    def vjp_one(params_, px, py, inputs):
+        entry, ct = inputs
+        entry = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entry, kinds)
+        floats, rest = eqx.partition(params_, eqx.is_inexact_array)
+
+        def one(d):
+            scene, camera = eqx.combine(d, rest)
+            with tape.replaying(entry):
+                out = kernel((*camera.generate_ray(px, py), jnp.stack([px, py])), scene, camera)
+            return {k: v for k, v in out.items() if float_out[k]}
+
+        return jax.vjp(one, floats)[1](ct)[0]
+
+    def reference(params_, s, inputs):
+        entries_, ct = inputs
+        floats, rest = eqx.partition(params_, eqx.is_inexact_array)
+
+        def replayed(d):
+            out = _replay(kernel, eqx.combine(d, rest), s, entries_, kinds, gather, wide)
+            return {k: v for k, v in out.items() if float_out[k]}
+
+        return jax.vjp(replayed, floats)[1](ct)[0]
+
+    return map_samples(vjp_one, params, samples, settings, reference, grid=grid,
+                       centres=offset if settings.spp == 1 else None,
+                       inputs=(entries, cotangent), summed=True)
 
 
 def _sample_kernel(settings):

@@ -131,6 +131,11 @@ class KernelOptions:
                          (4.47 against 3.35 ms) and larger (1 248 against 742 MiB);
                          with `prevent_cse=False` it is not measured on a GPU
                          (docs/performance.md, "Session 34" and "Session 32").
+      replay_kernel      a gradient (reverse mode) differentiates the replay in a
+                         lane kernel of its own ("fused" tiles, or one Pallas kernel),
+                         each sample's VJP of its replay summed over the samples
+                         (`render._recorded_vjp`), instead of XLA's reverse pass of the
+                         vmapped replay. No forward mode (`jax.jvp`) then.
       xla                the XLA compiler options of every backend's render program
                          (`jaxrt.xla.XLA_PRESETS`): "default" (XLA's) or "fast-compile"
                          (on a CPU: the legacy loop emitter instead of XLA's MLIR
@@ -166,6 +171,7 @@ class KernelOptions:
     replay_gather: int = 256
     replay_wide_unions: bool | None = None
     replay_remat: bool = False
+    replay_kernel: bool = False
     xla: str = "default"
 
     def __post_init__(self):
@@ -187,7 +193,7 @@ class KernelOptions:
              "an integer ≥ 0")
         need(self.replay_wide_unions is None or isinstance(self.replay_wide_unions, bool),
              "replay_wide_unions", "true, false or None")
-        for name in ("materialize", "replay_remat", "pallas_fma", "pallas_uniforms",
+        for name in ("materialize", "replay_remat", "replay_kernel", "pallas_fma", "pallas_uniforms",
                      "pallas_scan_loops", "pallas_fast_math"):
             need(isinstance(getattr(self, name), bool), name, "true or false")
         for name in ("auto_max_lane_ops_fused", "auto_max_lane_ops_pallas", "plain_max_lane_ops"):

@@ -740,6 +740,36 @@ def test_replay_recomputed_in_the_reverse_pass_has_the_same_gradient():
     np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
 
 
+@pytest.mark.parametrize("variant, backend", [
+    ("whitted", "fused"),
+    pytest.param("silhouette", "fused", marks=pytest.mark.slow),
+    pytest.param("scan", "fused", marks=pytest.mark.slow),
+    pytest.param("whitted", "pallas", marks=pytest.mark.slow),  # interpreted on a CPU
+])
+def test_replay_differentiated_in_a_lane_kernel_has_the_same_gradient(variant, backend):
+    """`KernelOptions.replay_kernel`: each sample's VJP of its replay, run by the lane
+    kernel and summed over its tiles, is the VJP of the vmapped replay: the same value
+    and gradient (float64; mirror, glass, soft shadows, a height field, silhouettes,
+    a scanned tree with dead slots)."""
+    scene, camera, settings = _replay_scene()
+    settings = settings.replace(backend=backend, **REPLAY_VARIANTS[variant])
+    weights = jnp.linspace(0.5, 1.5, 3)
+    dyn, static = eqx.partition((scene, camera), eqx.is_inexact_array)
+    grads = {}
+    for in_kernel in (False, True):
+        s = settings.replace(kernel=settings.kernel.replace(replay_kernel=in_kernel))
+
+        def loss(d, s=s):
+            return jnp.sum(jr.render(*eqx.combine(d, static), s).rgb * weights)
+
+        value, grad = jax.value_and_grad(loss)(dyn)
+        grads[in_kernel] = (float(value), np.asarray(ravel_pytree(grad)[0]))
+    assert grads[True][0] == pytest.approx(grads[False][0], rel=1e-12)
+    a, b = grads[True][1], grads[False][1]
+    assert np.max(np.abs(b)) > 0
+    np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
+
+
 def _lane_call_outputs(jaxpr):
     """The number of outputs of each outermost `custom_vjp_call` in `jaxpr` (the lane
     kernel of `jaxrt.kernels.fused.map_samples`), nested jaxprs included."""

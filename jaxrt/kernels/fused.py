@@ -47,7 +47,8 @@ __all__ = ["map_samples", "resolve_backend", "Unsupported", "pallas_block", "til
 TRITON_UNSUPPORTED = ("erf", "erfc", "lgamma", "digamma", "bessel_i0e", "bessel_i1e")
 
 
-def map_samples(fn, params, samples, settings, reference, grid=None, centres=None):
+def map_samples(fn, params, samples, settings, reference, grid=None, centres=None,
+                inputs=None, summed=False):
     """Evaluate `fn(params, px, py)` for every row of `samples` [N, 2].
 
     Args:
@@ -64,15 +65,23 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
       centres: (row, column) offset of the grid in an image (integers, may be traced)
         when the samples are the centres of the image's cells (column + ½, row + ½)
         over the grid; the Pallas kernel then computes them instead of reading them.
+      inputs: a pytree of [N, ...] arrays, the samples' own values (a render's records
+        and the cotangents of its image): then `fn(params, px, py, inputs_of_a_sample)`
+        and `reference(params, samples, inputs)`.
+      summed: the outputs summed over the samples (a sample's cotangents of the
+        parameters, summed into the gradient), as `reference` returns them; no
+        gradient of this.
 
-    Returns: a dict of [N, ...] arrays, the same as `reference` gives.
+    Returns: a dict of [N, ...] arrays (with `summed`, of the outputs' own shapes), the
+    same as `reference` gives.
     """
     dyn, static = eqx.partition(params, eqx.is_array)
     backend = resolve_backend(settings.backend)
     grid = (1, samples.shape[0]) if grid is None else tuple(grid)
+    extra = () if inputs is None else (inputs,)
 
-    def one(dyn_, px, py):
-        return fn(eqx.combine(dyn_, static), px, py)
+    def one(dyn_, px, py, *extra_):
+        return fn(eqx.combine(dyn_, static), px, py, *extra_)
 
     program = []
 
@@ -81,24 +90,29 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
         # kernel twice (abstractly, then in the caller's trace); the showcase's program
         # takes seconds to trace
         if not program:
-            program.append(_trace_one(one, dyn, samples.dtype, settings, backend))
+            program.append(_trace_one(one, dyn, samples.dtype, settings, backend, extra))
         return program[0]
 
-    @jax.custom_vjp
-    def run(dyn_, samples_):
+    def lanes(dyn_, samples_, *extra_):
         if backend == "pallas":
-            return _pallas(traced(), dyn_, samples_, settings, grid, centres)
-        return _tiles(traced(), dyn_, samples_, settings, grid)
+            return _pallas(traced(), dyn_, samples_, settings, grid, centres, extra_, summed)
+        return _tiles(traced(), dyn_, samples_, settings, grid, extra_, summed)
 
-    def run_fwd(dyn_, samples_):
-        return run(dyn_, samples_), (dyn_, samples_)
+    if summed:  # a gradient's kernel: not differentiated
+        run = lanes
+    else:
+        run = jax.custom_vjp(lanes)
 
-    def run_bwd(res, g):
-        dyn_, samples_ = res
-        _, vjp = jax.vjp(lambda d, s: reference(eqx.combine(d, static), s), dyn_, samples_)
-        return vjp(g)
+        def run_fwd(dyn_, samples_, *extra_):
+            return run(dyn_, samples_, *extra_), (dyn_, samples_, extra_)
 
-    run.defvjp(run_fwd, run_bwd)
+        def run_bwd(res, g):
+            dyn_, samples_, extra_ = res
+            _, vjp = jax.vjp(lambda d, s, *e: reference(eqx.combine(d, static), s, *e),
+                             dyn_, samples_, *extra_)
+            return vjp(g)
+
+        run.defvjp(run_fwd, run_bwd)
     if settings.backend == "auto":
         # "auto" falls back to the vmapped program for what lanes cannot run, or would
         # take long to compile. The test traces the lane program abstractly, apart from
@@ -108,7 +122,8 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
         try:
-            size = _lane_ops(traced()[0], backend, _loaded_scans(backend, settings))
+            size = _lane_ops(traced()[0], backend, _loaded_scans(backend, settings),
+                             len(jax.tree_util.tree_leaves(dyn)))
             limit = settings.kernel.auto_max_lane_ops(backend)
             if size > limit:
                 raise Unsupported(
@@ -116,8 +131,8 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
                     f"RenderSettings.kernel.auto_max_lane_ops_{backend} = {limit}: a large "
                     f"scene or a deep ray tree), whose {backend} kernel would compile for "
                     "minutes")
-            jax.eval_shape(lambda d, s: run(d, s), jax.tree_util.tree_map(abstract, dyn),
-                           abstract(samples))
+            jax.eval_shape(lambda d, s, *e: run(d, s, *e), jax.tree_util.tree_map(abstract, dyn),
+                           abstract(samples), *jax.tree_util.tree_map(abstract, extra))
         except Exception as e:  # noqa: BLE001  any lane failure (also a JAX version's
             # primitive parameters that lanes do not know) falls back, with one line
             reason = (str(e).strip().splitlines() or [""])[0]
@@ -125,8 +140,8 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
                 reason = f"{type(e).__name__} {reason}".strip()
             warnings.warn(f"RenderSettings(backend='auto'): {reason}; rendering with backend='jax'",
                           stacklevel=3)
-            return reference(params, samples)
-    return run(dyn, samples)
+            return reference(params, samples, *extra)
+    return run(dyn, samples, *extra)
 
 
 def tile_shape(block, grid, pow2=False):
@@ -170,8 +185,10 @@ def resolve_backend(backend):
     return backend
 
 
-def _trace_one(one, dyn, dtype, settings, backend):
-    """The jaxpr of the one-sample program and the pytree of its outputs, its marches
+def _trace_one(one, dyn, dtype, settings, backend, extra=()):
+    """The jaxpr of the one-sample program (inputs: the leaves of `dyn`, the sample's
+    two coordinates, then one sample's slice of `extra`, the samples' own inputs) and
+    the pytree of its outputs, its marches
     in the loop form of `settings.kernel.march_form` (`jaxrt.march.form`). "auto" traces
     the phases and, for a program of at most `kernel.plain_max_lane_ops` lane operations,
     the plain form, which it takes if that is within the limit too: the plain form renders
@@ -180,18 +197,20 @@ def _trace_one(one, dyn, dtype, settings, backend):
     showcase on "fused": 70 s against 35 s) and Triton's compile time grows faster still."""
     px = jax.ShapeDtypeStruct((), dtype)
     shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
+    ones = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), extra)
+    nparams = len(jax.tree_util.tree_leaves(dyn))
 
     loops = _loaded_scans(backend, settings)
 
     def trace(form):  # a new function each time: make_jaxpr caches traces by function
         with march_form.using(form), tape.lanes(backend), tape.forward_gradients(loops):
-            return jax.make_jaxpr(lambda *a: one(*a), return_shape=True)(shapes, px, px)
+            return jax.make_jaxpr(lambda *a: one(*a), return_shape=True)(shapes, px, px, *ones)
 
     option, limit = settings.kernel.march_form, settings.kernel.plain_max_lane_ops
     closed, out_shapes = trace("phases" if option == "auto" else option)
-    if option == "auto" and _lane_ops(closed, backend, loops) <= limit:
+    if option == "auto" and _lane_ops(closed, backend, loops, nparams) <= limit:
         plain = trace("plain")
-        if _lane_ops(plain[0], backend, loops) <= limit:
+        if _lane_ops(plain[0], backend, loops, nparams) <= limit:
             closed, out_shapes = plain
     return closed, out_shapes
 
@@ -202,9 +221,10 @@ def _loaded_scans(backend, settings):
     return backend == "pallas" and settings.kernel.pallas_scan_loops
 
 
-def _lane_ops(closed, backend, loops=False):
+def _lane_ops(closed, backend, loops=False, nparams=None):
     """`program_size` of a one-sample program of `_trace_one` (its inputs: the scene's
-    values, then the sample's two coordinates). On "fused" an operation on the scene's
+    `nparams` values, then the sample's two coordinates and its own inputs; default:
+    the coordinates alone). On "fused" an operation on the scene's
     values alone counts once (lanes compute it once per tile, and scans stay loops), so a
     stacked group's rows do not count. Pallas with `loops` (`pallas_scan_loops`) counts
     the same way, but a scan that it cannot keep as a loop (`lanes.control._loads`: the
@@ -213,40 +233,73 @@ def _lane_ops(closed, backend, loops=False):
     (Pallas compiled them in 66–85 s on an H100), 256 spheres 52k, against 2.5k for
     both with loops."""
     n = len(closed.jaxpr.invars)
+    nparams = n - 2 if nparams is None else nparams
     unrolled = backend != "fused"
-    per_ray = [unrolled and not loops] * (n - 2) + [True, True]
+    per_ray = [unrolled and not loops] * nparams + [True] * (n - nparams)
     return program_size(closed.jaxpr, per_ray, unrolled_scans=unrolled, loaded_scans=loops)
 
 
 # ----------------------------------------------------------------- "fused": XLA tiles
 
 
-def _tiles(traced, dyn, samples, settings, grid):
+def _tiles(traced, dyn, samples, settings, grid, extra=(), summed=False):
     """The one-sample program `traced` (`_trace_one`: jaxpr, output shapes) evaluated by
-    `eval_lanes` in `lax.map` over square tiles of `grid`."""
+    `eval_lanes` in `lax.map` over square tiles of `grid`; `extra`, `summed`: the
+    samples' own inputs and summed outputs of `map_samples`."""
     closed, out_shapes = traced
     leaves = jax.tree_util.tree_leaves(dyn)
     out_leaves, out_tree = jax.tree_util.tree_flatten(out_shapes)
     n = samples.shape[0]
     tile = tile_shape(settings.rays_per_tile(n, lanes=True), grid)
-    s = _to_tiles(samples, grid, tile)  # [ty, tx, th, tw, 2]
-    ty, tx = s.shape[:2]
-    s = s.reshape((ty * tx,) + s.shape[2:])
 
-    def run_tile(sb):
+    def tiled(x):  # [N, ...] → [tiles, th, tw, ...]
+        x = _to_tiles(x, grid, tile)
+        return x.reshape((-1,) + x.shape[2:])
+
+    s = tiled(samples)
+    per = [tiled(x) for x in jax.tree_util.tree_leaves(extra)]
+    # the padding's samples (copies of the edge's) count for nothing in a sum
+    real = _to_tiles_real(grid, tile)
+
+    def run_tile(block):
+        sb, pb, rb = block
         args = [lanes_of(leaf, lazy=True) for leaf in leaves]
-        args += [_lane(sb[..., 0]), _lane(sb[..., 1])]
+        args += [_lane(sb[..., 0]), _lane(sb[..., 1])] + [_lanes_per_ray(x) for x in pb]
         outs = eval_lanes(closed, args, tile, unroll=settings.kernel.unroll,
                           materialize=settings.kernel.materialize, roll_scans=True, keep_rows=True,
                           compact=settings.kernel.compaction)
-        return [stack_lanes(o, tile, sh.dtype) for o, sh in zip(outs, out_leaves)]
+        outs = [stack_lanes(o, tile, sh.dtype) for o, sh in zip(outs, out_leaves)]
+        if summed:
+            outs = [jnp.where(rb.reshape(rb.shape + (1,) * (o.ndim - 2)), o, 0).sum((0, 1))
+                    for o in outs]
+        return outs
 
-    if ty * tx == 1:
-        res = [r[None] for r in run_tile(s[0])]
+    if s.shape[0] == 1:
+        res = [r[None] for r in run_tile((s[0], [x[0] for x in per], real[0]))]
     else:
-        res = lax.map(run_tile, s)
-    res = [_from_tiles(r.reshape((ty, tx) + r.shape[1:]), grid) for r in res]
+        res = lax.map(run_tile, (s, per, real))
+    if summed:
+        res = [r.sum(0) for r in res]
+    else:
+        ty, tx = -(-grid[0] // tile[0]), -(-grid[1] // tile[1])
+        res = [_from_tiles(r.reshape((ty, tx) + r.shape[1:]), grid) for r in res]
     return jax.tree_util.tree_unflatten(out_tree, res)
+
+
+def _to_tiles_real(grid, tile):
+    """[tiles, th, tw]: whether a tile's sample is one of the grid's (not padding)."""
+    (rows, cols), (th, tw) = grid, tile
+    ty, tx = -(-rows // th), -(-cols // tw)
+    real = (np.arange(ty * th)[:, None] < rows) & (np.arange(tx * tw)[None, :] < cols)
+    return real.reshape(ty, th, tx, tw).swapaxes(1, 2).reshape(ty * tx, th, tw)
+
+
+def _lanes_per_ray(x):
+    """A tile of one per-sample input [th, tw, *S] as an object array of [th, tw] lanes."""
+    out = np.empty(x.shape[2:], dtype=object)
+    for idx in np.ndindex(x.shape[2:]):
+        out[idx] = x[(slice(None), slice(None)) + idx]
+    return out
 
 
 def _lane(x):
@@ -353,7 +406,10 @@ def _pow2(n, at_least=1):
     return max(at_least, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
 
 
-def _pallas(traced, dyn, samples, settings, grid, centres=None):
+def _pallas(traced, dyn, samples, settings, grid, centres=None, extra=(), summed=False):
+    """The one-sample program `traced` as one Pallas kernel over tiles of `grid`;
+    `extra`, `summed`: the samples' own inputs and summed outputs of `map_samples`
+    (each sample's outputs are written, and summed outside the kernel)."""
     from jax.experimental import pallas as pl
 
     dtype = samples.dtype
@@ -369,6 +425,7 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
     ptx = None
     if dtype == jnp.float32 and (opts.pallas_fma or opts.pallas_fast_math):
         ptx = {k: f for k, f in _ptx_ops(interpret).items() if opts.pallas_fma or k != "fma"}
+    per = jax.tree_util.tree_leaves(extra)
     lane_options = dict(unroll=opts.pallas_unroll, fast_math=opts.pallas_fast_math,
                         unsupported=TRITON_UNSUPPORTED, bool_carries=True)
     # parameters: one vector of the float dtype (ints and bools stored exactly as floats),
@@ -394,7 +451,8 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
     if recorded is not None or tables is not None:
         placeholder = _lane(jnp.zeros((th, tw), dtype))
         args = [lanes_of(x) for x in leaves]
-        eval_lanes(closed, args + [placeholder, placeholder],
+        ones = [_lanes_per_ray(jnp.zeros((th, tw) + x.shape[1:], x.dtype)) for x in per]
+        eval_lanes(closed, args + [placeholder, placeholder] + ones,
                    (th, tw), uniforms=recorded, addresses=addressed(args), tables=tables,
                    load=_recording_load(leaves, dtype, recorded, tables),
                    ptx=None if ptx is None else {k: f for k, f in _ptx_ops(True).items() if k in ptx},
@@ -426,14 +484,14 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
 
     def kernel(p_ref, *refs):
         if centres is not None:  # pixel centres, computed here: no sample array to read
-            o_refs = refs
             i, j = pl.program_id(0), pl.program_id(1)
             row0, col0 = p_ref[ubase - 2], p_ref[ubase - 1]
             py = (i * th + lax.broadcasted_iota(jnp.int32, (th, tw), 0)).astype(dtype) + (row0 + 0.5)
             px = (j * tw + lax.broadcasted_iota(jnp.int32, (th, tw), 1)).astype(dtype) + (col0 + 0.5)
         else:
-            s_ref, *o_refs = refs
+            s_ref, *refs = refs
             px, py = s_ref[0], s_ref[1]
+        x_refs, o_refs = refs[:len(per)], refs[len(per):]
         args = []
         for leaf, off in zip(leaves, offsets):
             obj = np.empty(leaf.shape, dtype=object)
@@ -442,6 +500,11 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
             args.append(obj)
         addresses = addressed(args)
         args += [_lane(px), _lane(py)]
+        for x, x_ref in zip(per, x_refs):  # a sample's own inputs, component by component
+            obj = np.empty(x.shape[1:], dtype=object)
+            for c, idx in enumerate(np.ndindex(obj.shape)):
+                obj[idx] = x_ref[c]
+            args.append(obj)
         uniforms = None
         if recorded is not None:
             uniforms = Uniforms(read=lambda k_, dt: _from_float32_word(p_ref[ubase + k_], dt))
@@ -487,11 +550,17 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
             out_specs.append(pl.BlockSpec((th, tw, size), lambda i, j: (i, j, 0)))
     in_specs = [pl.BlockSpec((nparams,), lambda i, j: (0,))]
     args = [pvec]
+
+    def planes(x):  # [N, ...] → [components, ty·th, tx·tw] (edge padding), and its block
+        x = _to_tiles(x.reshape(x.shape[:1] + (-1,)), grid, (th, tw))  # [ty, tx, th, tw, m]
+        m = x.shape[-1]
+        args.append(jnp.moveaxis(jnp.moveaxis(x, -1, 0), 2, 3).reshape(m, ty * th, tx * tw))
+        in_specs.append(pl.BlockSpec((m, th, tw), lambda i, j: (0, i, j)))
+
     if centres is None:
-        s = _to_tiles(samples, grid, (th, tw))  # [ty, tx, th, tw, 2]
-        s = jnp.moveaxis(jnp.moveaxis(s, -1, 0), 2, 3).reshape(2, ty * th, tx * tw)
-        in_specs.append(pl.BlockSpec((2, th, tw), lambda i, j: (0, i, j)))
-        args.append(s)
+        planes(samples)
+    for x in per:
+        planes(x)
     call = pl.pallas_call(
         kernel,
         out_shape=out_shape,
@@ -504,4 +573,6 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None):
     )
     res = [x[:rows, :cols].reshape((rows * cols,) + sh.shape)
            for x, sh in zip(call(*args), out_leaves)]
+    if summed:
+        res = [r.sum(0) for r in res]
     return jax.tree_util.tree_unflatten(out_tree, res)
