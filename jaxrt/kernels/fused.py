@@ -409,7 +409,7 @@ def _pow2(n, at_least=1):
 def _pallas(traced, dyn, samples, settings, grid, centres=None, extra=(), summed=False):
     """The one-sample program `traced` as one Pallas kernel over tiles of `grid`;
     `extra`, `summed`: the samples' own inputs and summed outputs of `map_samples`
-    (each sample's outputs are written, and summed outside the kernel)."""
+    (each tile writes its sums, which XLA adds up)."""
     from jax.experimental import pallas as pl
 
     dtype = samples.dtype
@@ -520,13 +520,19 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None, extra=(), summed
         if recorded is not None:
             uniforms.check(recorded)
         zero = px * 0  # outputs that are constants: lanes computed from a traced zero
+        if summed:  # the tile's sum of each element, over the grid's samples only
+            i, j = pl.program_id(0), pl.program_id(1)
+            real = ((i * th + lax.broadcasted_iota(jnp.int32, (th, tw), 0) < rows)
+                    & (j * tw + lax.broadcasted_iota(jnp.int32, (th, tw), 1) < cols))
         for o, o_ref in zip(outs, o_refs):
             for c, x in enumerate(o.reshape(-1)):
                 dt = o_ref.dtype
                 if isinstance(x, np.generic):
                     x = (zero + np.float32(x)).astype(dt)
                 x = jnp.broadcast_to(jnp.asarray(x).astype(dt), (th, tw))
-                if o.shape == ():
+                if summed:
+                    o_ref[0, 0, c] = jnp.sum(jnp.sum(jnp.where(real, x, 0), axis=-1), axis=-1)
+                elif o.shape == ():
                     o_ref[...] = x
                 else:
                     o_ref[:, :, c] = x
@@ -542,7 +548,10 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None, extra=(), summed
     out_shape, out_specs = [], []
     for o in out_leaves:
         size = int(np.prod(o.shape))
-        if o.shape == ():
+        if summed:  # a row of sums per tile
+            out_shape.append(jax.ShapeDtypeStruct((ty, tx, size), o.dtype))
+            out_specs.append(pl.BlockSpec((1, 1, size), lambda i, j: (i, j, 0)))
+        elif o.shape == ():
             out_shape.append(jax.ShapeDtypeStruct((ty * th, tx * tw), o.dtype))
             out_specs.append(pl.BlockSpec((th, tw), lambda i, j: (i, j)))
         else:
@@ -571,8 +580,9 @@ def _pallas(traced, dyn, samples, settings, grid, centres=None, extra=(), summed
         name="jaxrt_render",
         **kwargs,
     )
-    res = [x[:rows, :cols].reshape((rows * cols,) + sh.shape)
-           for x, sh in zip(call(*args), out_leaves)]
     if summed:
-        res = [r.sum(0) for r in res]
+        res = [x.sum((0, 1)).reshape(sh.shape) for x, sh in zip(call(*args), out_leaves)]
+    else:
+        res = [x[:rows, :cols].reshape((rows * cols,) + sh.shape)
+               for x, sh in zip(call(*args), out_leaves)]
     return jax.tree_util.tree_unflatten(out_tree, res)
