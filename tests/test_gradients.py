@@ -750,9 +750,10 @@ def test_replay_differentiated_in_a_lane_kernel_has_the_same_gradient(variant, b
     """`KernelOptions.replay_kernel`: each sample's VJP of its replay, run by the lane
     kernel and summed over its tiles, is the VJP of the vmapped replay: the same value
     and gradient (float64; mirror, glass, soft shadows, a height field, silhouettes,
-    a scanned tree with dead slots)."""
+    a scanned tree with dead slots). Tiles of 4×4 samples over the 10×6 image: its sums
+    leave the padding's samples out."""
     scene, camera, settings = _replay_scene()
-    settings = settings.replace(backend=backend, **REPLAY_VARIANTS[variant])
+    settings = settings.replace(backend=backend, **{"batch_size": 16, **REPLAY_VARIANTS[variant]})
     weights = jnp.linspace(0.5, 1.5, 3)
     dyn, static = eqx.partition((scene, camera), eqx.is_inexact_array)
     grads = {}
