@@ -147,8 +147,10 @@ def _replays_in_kernel(settings, params):
     """Whether a derivative of the render differentiates its replay in a lane kernel
     (`_recorded_vjp`): `KernelOptions.replay_kernel`, for scenes whose floats are all
     small (a per-sample cotangent of a voxel grid would be a lane per voxel)."""
+    option = settings.kernel.replay_kernel
+    option = resolve_backend(settings.backend) == "pallas" if option is None else option
     leaves = jax.tree_util.tree_leaves(eqx.filter(params, eqx.is_inexact_array))
-    return settings.kernel.replay_kernel and all(x.size <= PER_SAMPLE_MAX for x in leaves)
+    return option and all(x.size <= PER_SAMPLE_MAX for x in leaves)
 
 
 def _recorded_vjp(kernel, dyn, static, samples, settings, grid, offset, gather, wide):
@@ -192,7 +194,9 @@ def _replay_vjp(kernel, params, samples, entries, kinds, cotangent, settings, gr
     """Σ_samples (∂ replay(sample) / ∂ floats)ᵀ · cotangent(sample): the gradient of the
     render's floats (a pytree of `params` with None at the rest), each sample's
     VJP of its replay in one lane kernel (`map_samples`, `summed`). Its "auto"
-    fall-back is the VJP of the vmapped replay (`_replay`)."""
+    fall-back is the VJP of the vmapped replay (`_replay`), which also serves a VJP
+    program of more than `KernelOptions.replay_kernel_max_lane_ops` when
+    `replay_kernel` is None."""
     from .kernels.fused import map_samples
 
     float_out = {k: v.dtype != jax.dtypes.float0 for k, v in cotangent.items()}
@@ -221,9 +225,10 @@ def _replay_vjp(kernel, params, samples, entries, kinds, cotangent, settings, gr
 
         return jax.vjp(replayed, floats)[1](ct)[0]
 
+    limit = settings.kernel.replay_kernel_max_lane_ops if settings.kernel.replay_kernel is None else None
     return map_samples(vjp_one, params, samples, settings, reference, grid=grid,
                        centres=offset if settings.spp == 1 else None,
-                       inputs=(entries, cotangent), summed=True)
+                       inputs=(entries, cotangent), summed=True, max_lane_ops=limit)
 
 
 def _sample_kernel(settings):

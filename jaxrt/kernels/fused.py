@@ -48,7 +48,7 @@ TRITON_UNSUPPORTED = ("erf", "erfc", "lgamma", "digamma", "bessel_i0e", "bessel_
 
 
 def map_samples(fn, params, samples, settings, reference, grid=None, centres=None,
-                inputs=None, summed=False):
+                inputs=None, summed=False, max_lane_ops=None):
     """Evaluate `fn(params, px, py)` for every row of `samples` [N, 2].
 
     Args:
@@ -71,6 +71,8 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
       summed: the outputs summed over the samples (a sample's cotangents of the
         parameters, summed into the gradient), as `reference` returns them; no
         gradient of this.
+      max_lane_ops: a one-sample program of more lane operations (`_lane_ops`) runs
+        `reference` instead, with no warning (a choice of the caller's, not a failure).
 
     Returns: a dict of [N, ...] arrays (with `summed`, of the outputs' own shapes), the
     same as `reference` gives.
@@ -113,6 +115,12 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             return vjp(g)
 
         run.defvjp(run_fwd, run_bwd)
+
+    def lane_ops():
+        return _lane_ops(traced()[0], backend, _loaded_scans(backend, settings),
+                         len(jax.tree_util.tree_leaves(dyn)))
+
+    too_large = False  # over the caller's `max_lane_ops`: `reference`, quietly
     if settings.backend == "auto":
         # "auto" falls back to the vmapped program for what lanes cannot run, or would
         # take long to compile. The test traces the lane program abstractly, apart from
@@ -122,8 +130,8 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
         try:
-            size = _lane_ops(traced()[0], backend, _loaded_scans(backend, settings),
-                             len(jax.tree_util.tree_leaves(dyn)))
+            size = lane_ops()
+            too_large = max_lane_ops is not None and size > max_lane_ops
             limit = settings.kernel.auto_max_lane_ops(backend)
             if size > limit:
                 raise Unsupported(
@@ -131,8 +139,9 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
                     f"RenderSettings.kernel.auto_max_lane_ops_{backend} = {limit}: a large "
                     f"scene or a deep ray tree), whose {backend} kernel would compile for "
                     "minutes")
-            jax.eval_shape(lambda d, s, *e: run(d, s, *e), jax.tree_util.tree_map(abstract, dyn),
-                           abstract(samples), *jax.tree_util.tree_map(abstract, extra))
+            if not too_large:
+                jax.eval_shape(lambda d, s, *e: run(d, s, *e), jax.tree_util.tree_map(abstract, dyn),
+                               abstract(samples), *jax.tree_util.tree_map(abstract, extra))
         except Exception as e:  # noqa: BLE001  any lane failure (also a JAX version's
             # primitive parameters that lanes do not know) falls back, with one line
             reason = (str(e).strip().splitlines() or [""])[0]
@@ -141,6 +150,10 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             warnings.warn(f"RenderSettings(backend='auto'): {reason}; rendering with backend='jax'",
                           stacklevel=3)
             return reference(params, samples, *extra)
+    elif max_lane_ops is not None:
+        too_large = lane_ops() > max_lane_ops
+    if too_large:
+        return reference(params, samples, *extra)
     return run(dyn, samples, *extra)
 
 
