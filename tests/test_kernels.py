@@ -215,7 +215,7 @@ def test_auto_traces_the_one_sample_program_once_per_kernel(small_scene, monkeyp
     scene, camera, settings = small_scene
     calls = []
     trace_one = fused._trace_one
-    monkeypatch.setattr(fused, "_trace_one", lambda *a: calls.append(a[-1]) or trace_one(*a))
+    monkeypatch.setattr(fused, "_trace_one", lambda *a: calls.append(a[4]) or trace_one(*a))
 
     def loss(scene, steps):  # settings of their own: no trace cached by another test
         settings_ = settings.replace(backend="auto", max_steps=steps)
@@ -364,8 +364,8 @@ def test_auto_counts_a_stacked_union_once_unless_pallas_unrolls_it(monkeypatch):
 
     sizes = {}
 
-    def spy(closed, backend, loops=False):
-        sizes[backend, loops] = size = lane_ops(closed, backend, loops)
+    def spy(closed, backend, loops=False, nparams=None):
+        sizes[backend, loops] = size = lane_ops(closed, backend, loops, nparams)
         return size
 
     lane_ops = fused._lane_ops

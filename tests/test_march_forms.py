@@ -122,7 +122,7 @@ def _program_sizes(monkeypatch, settings, limit):
 
     def traced(*args):
         closed, out_shapes = trace(*args)
-        *_, settings_, backend = args
+        settings_, backend = args[3:5]
         sizes.append(fused._lane_ops(closed, backend, settings_.kernel.pallas_scan_loops))
         return closed, out_shapes
 
