@@ -166,22 +166,25 @@ def _recorded_vjp(kernel, dyn, static, samples, settings, grid, offset, gather, 
     re-reading 10–20 per-sample arrays each: docs/performance.md, "Session 34").
     The gradient is the vmapped replay's (`_replay`) to rounding; it is that
     program's "auto" fall-back. No forward mode (a `custom_vjp`)."""
-    kinds = []
+    kinds, record = [], {}
 
     @jax.custom_vjp
     def image(dyn_, s):
         return _fused(*eqx.combine(dyn_, static), s, settings, kernel, grid, offset)
 
     def image_fwd(dyn_, s):
-        out, kinds_ = _record(kernel, eqx.combine(dyn_, static), s, settings, grid, offset)
+        out, kinds_ = _record(kernel, eqx.combine(dyn_, static), s, settings, grid, offset,
+                              info=record)
         kinds[:] = [kinds_]
         return out["image"], (dyn_, s, out["tape"])
 
     def image_bwd(res, cotangent):
         dyn_, s, entries = res
         floats, ints = eqx.partition(dyn_, eqx.is_inexact_array)
+        # a record that "auto" took from the vmapped program: its replay's VJP is too
+        # large for a kernel as well (the showcase on a GPU: 6.6 s of tracing saved)
         grads = _replay_vjp(kernel, eqx.combine(dyn_, static), s, entries, kinds[0], cotangent,
-                            settings, grid, offset, gather, wide)
+                            settings, grid, offset, gather, wide, lanes=record.get("lanes", True))
         zeros = jax.tree_util.tree_map(lambda x: np.zeros(x.shape, jax.dtypes.float0), ints)
         return eqx.combine(grads, zeros), jnp.zeros_like(s)
 
@@ -190,13 +193,14 @@ def _recorded_vjp(kernel, dyn, static, samples, settings, grid, offset, gather, 
 
 
 def _replay_vjp(kernel, params, samples, entries, kinds, cotangent, settings, grid, offset,
-                gather, wide):
+                gather, wide, lanes=True):
     """Σ_samples (∂ replay(sample) / ∂ floats)ᵀ · cotangent(sample): the gradient of the
     render's floats (a pytree of `params` with None at the rest), each sample's
     VJP of its replay in one lane kernel (`map_samples`, `summed`). Its "auto"
     fall-back is the VJP of the vmapped replay (`_replay`), which also serves a VJP
     program of more than `KernelOptions.replay_kernel_max_lane_ops` when
-    `replay_kernel` is None."""
+    `replay_kernel` is None, and one whose record's program was not a kernel
+    (`lanes` false)."""
     from .kernels.fused import map_samples
 
     float_out = {k: v.dtype != jax.dtypes.float0 for k, v in cotangent.items()}
@@ -225,6 +229,8 @@ def _replay_vjp(kernel, params, samples, entries, kinds, cotangent, settings, gr
 
         return jax.vjp(replayed, floats)[1](ct)[0]
 
+    if not lanes:
+        return reference(params, samples, (entries, cotangent))
     limit = settings.kernel.replay_kernel_max_lane_ops if settings.kernel.replay_kernel is None else None
     return map_samples(vjp_one, params, samples, settings, reference, grid=grid,
                        centres=offset if settings.spp == 1 else None,
@@ -244,7 +250,7 @@ def _sample_kernel(settings):
     return kernel
 
 
-def _record(kernel, params, samples, settings, grid, offset):
+def _record(kernel, params, samples, settings, grid, offset, info=None):
     """({"image": per-sample outputs, "tape": per-sample records of every march}, kinds):
     the kernel run lane-wise (`_fused`) with its marches recorded (no gradient).
     Boolean records travel as int32 (kernels store words, not predicates); `kinds`
@@ -260,7 +266,7 @@ def _record(kernel, params, samples, settings, grid, offset):
             lambda x: x.astype(jnp.int32) if x.dtype == jnp.bool_ else x, t.entries)
         return {"image": out, "tape": words}
 
-    out = _fused(*params, samples, settings, record_kernel, grid, offset)
+    out = _fused(*params, samples, settings, record_kernel, grid, offset, info)
     return out, kinds[0]
 
 
@@ -356,10 +362,10 @@ def _replay_image(scene, camera, settings):
     return out["image"], _replay(kernel, (scene, camera), samples, out["tape"], kinds, gather)
 
 
-def _fused(scene, camera, samples, settings, kernel, grid, offset):
+def _fused(scene, camera, samples, settings, kernel, grid, offset, info=None):
     """The per-sample kernel run lane-wise by `jaxrt.kernels` (backend "fused"/"pallas"/
     "auto") on a block `grid` of samples at `offset` in the image (no gradient: see
-    `_recorded`)."""
+    `_recorded`); `info`: `map_samples`'s."""
     from .kernels.fused import map_samples
 
     def one(params, px, py):
@@ -372,7 +378,7 @@ def _fused(scene, camera, samples, settings, kernel, grid, offset):
 
     # pixel_samples gives pixel centres at spp 1: the Pallas kernel then computes them
     return map_samples(one, (scene, camera), samples, settings, reference, grid=grid,
-                       centres=offset if settings.spp == 1 else None)
+                       centres=offset if settings.spp == 1 else None, info=info)
 
 
 def _prestacked(scene, settings):

@@ -771,6 +771,27 @@ def test_replay_differentiated_in_a_lane_kernel_has_the_same_gradient(variant, b
     np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
 
 
+def test_replay_kernel_by_default_only_for_small_vjp_programs():
+    """`replay_kernel = None` runs the replay's VJP in a Pallas kernel when its program is
+    at most `replay_kernel_max_lane_ops`, else XLA's reverse pass, with no warning: a
+    gradient is the recording Pallas kernel and one for the VJP, or the first alone.
+    Off on "fused"."""
+    scene, camera, settings = _replay_scene()
+    dyn, static = eqx.partition((scene, camera), eqx.is_inexact_array)
+
+    def kernels(backend, limit):
+        s = settings.replace(backend=backend, kernel=jr.KernelOptions(
+            replay_kernel_max_lane_ops=limit, interpret=True))
+        grad = jax.grad(lambda d: jnp.sum(jr.render(*eqx.combine(d, static), s).rgb))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            return str(jax.make_jaxpr(grad)(dyn)).count("pallas_call[")
+
+    assert kernels("pallas", 10**6) == 2
+    assert kernels("pallas", 1) == 1
+    assert kernels("fused", 10**6) == 0
+
+
 def _lane_call_outputs(jaxpr):
     """The number of outputs of each outermost `custom_vjp_call` in `jaxpr` (the lane
     kernel of `jaxrt.kernels.fused.map_samples`), nested jaxprs included."""

@@ -48,7 +48,7 @@ TRITON_UNSUPPORTED = ("erf", "erfc", "lgamma", "digamma", "bessel_i0e", "bessel_
 
 
 def map_samples(fn, params, samples, settings, reference, grid=None, centres=None,
-                inputs=None, summed=False, max_lane_ops=None):
+                inputs=None, summed=False, max_lane_ops=None, info=None):
     """Evaluate `fn(params, px, py)` for every row of `samples` [N, 2].
 
     Args:
@@ -73,6 +73,8 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
         gradient of this.
       max_lane_ops: a one-sample program of more lane operations (`_lane_ops`) runs
         `reference` instead, with no warning (a choice of the caller's, not a failure).
+      info: a dict in which `info["lanes"]` tells whether the lane kernel ran (False
+        where `reference` did).
 
     Returns: a dict of [N, ...] arrays (with `summed`, of the outputs' own shapes), the
     same as `reference` gives.
@@ -120,7 +122,7 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
         return _lane_ops(traced()[0], backend, _loaded_scans(backend, settings),
                          len(jax.tree_util.tree_leaves(dyn)))
 
-    too_large = False  # over the caller's `max_lane_ops`: `reference`, quietly
+    too_large = False  # `reference` runs (over the caller's `max_lane_ops`: quietly)
     if settings.backend == "auto":
         # "auto" falls back to the vmapped program for what lanes cannot run, or would
         # take long to compile. The test traces the lane program abstractly, apart from
@@ -149,9 +151,11 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
                 reason = f"{type(e).__name__} {reason}".strip()
             warnings.warn(f"RenderSettings(backend='auto'): {reason}; rendering with backend='jax'",
                           stacklevel=3)
-            return reference(params, samples, *extra)
+            too_large = True
     elif max_lane_ops is not None:
         too_large = lane_ops() > max_lane_ops
+    if info is not None:
+        info["lanes"] = not too_large
     if too_large:
         return reference(params, samples, *extra)
     return run(dyn, samples, *extra)
