@@ -180,7 +180,7 @@ def _recorded_vjp(kernel, dyn, static, samples, settings, grid, offset, gather, 
 
     def image_bwd(res, cotangent):
         dyn_, s, entries = res
-        floats, ints = eqx.partition(dyn_, eqx.is_inexact_array)
+        ints = eqx.filter(dyn_, eqx.is_inexact_array, inverse=True)
         # a record that "auto" took from the vmapped program: its replay's VJP is too
         # large for a kernel as well (the showcase on a GPU: 6.6 s of tracing saved)
         grads = _replay_vjp(kernel, eqx.combine(dyn_, static), s, entries, kinds[0], cotangent,
