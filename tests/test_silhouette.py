@@ -159,7 +159,8 @@ def test_outline_gradients_in_forward_and_reverse_mode_are_finite_and_agree():
     differentiated too: at -O0 its gradient was NaN, the jvp finite.)"""
     build, theta, _, view, region = CASES["box_position"]
     camera = jr.PerspectiveCamera(width=16, height=16, **view)
-    settings = BASE.replace(silhouette=True, spp=4)
+    settings = BASE.replace(silhouette=True, spp=4,  # forward mode too, also on a GPU
+                            kernel=BASE.kernel.replace(replay_kernel=False))
 
     def mean(p):
         return jnp.mean(jr.render(build(p), camera, settings).rgb[region])
@@ -206,7 +207,8 @@ def disc_tangents():
         image, tangent = jax.jvp(render, (jnp.asarray(1.0),), (jnp.asarray(1.0),))
         return image, tangent.rgb[..., 0]
 
-    return {mode: run(BASE.replace(silhouette=True, silhouette_gradient=mode))
+    forward = BASE.kernel.replace(replay_kernel=False)  # forward mode, also on a GPU
+    return {mode: run(BASE.replace(silhouette=True, silhouette_gradient=mode, kernel=forward))
             for mode in ("ramp", "outline")}
 
 
