@@ -182,7 +182,7 @@ def _recorded_vjp(kernel, dyn, static, samples, settings, grid, offset, gather, 
         dyn_, s, entries = res
         ints = eqx.filter(dyn_, eqx.is_inexact_array, inverse=True)
         # a record that "auto" took from the vmapped program: its replay's VJP is too
-        # large for a kernel as well (the showcase on a GPU: 6.6 s of tracing saved)
+        # large for a kernel as well (the showcase traced for Pallas: 6.6 s saved)
         grads = _replay_vjp(kernel, eqx.combine(dyn_, static), s, entries, kinds[0], cotangent,
                             settings, grid, offset, gather, wide, lanes=record.get("lanes", True))
         zeros = jax.tree_util.tree_map(lambda x: np.zeros(x.shape, jax.dtypes.float0), ints)

@@ -135,7 +135,7 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
             size = lane_ops()
             too_large = max_lane_ops is not None and size > max_lane_ops
             limit = settings.kernel.auto_max_lane_ops(backend)
-            if size > limit:
+            if size > limit and not too_large:
                 raise Unsupported(
                     f"the one-ray program has {size} lane operations (more than "
                     f"RenderSettings.kernel.auto_max_lane_ops_{backend} = {limit}: a large "
