@@ -56,7 +56,7 @@ from .march.sphere import rounding_floor
 from .march.search import repeat
 from .trace import (hit_epsilon, intersect_plane, normal_and_material, sphere_trace,
                     value_and_gradient)
-from .vecmath import dot, safe_div, safe_norm, stop_gradient, to_local
+from .vecmath import dot, normalize, safe_div, safe_norm, stop_gradient, to_local
 
 
 def select(values, index):
@@ -118,27 +118,43 @@ def spawn_origin(scene, which, p, n, offset, side, steps=2):
     x0 = p + jnp.asarray(offset)[..., None] * n
     if steps == 0:
         return x0
-    batched = p.ndim > 1
-    settle = partial(_settle, steps=steps)
-    settle = jax.vmap(settle, (None, None, 0, 0)) if batched else settle
     # Through the tape: the settled origin is a record (a bounded loop, no gradient).
-    x = tape.march(settle, stop_gradient(scene), which, jax.lax.stop_gradient(x0),
-                   jax.lax.stop_gradient(side * offset))
+    x = tape.march(partial(_settle, steps=steps), stop_gradient(scene), which,
+                   jax.lax.stop_gradient(x0), jax.lax.stop_gradient(side * offset))
     return x0 + jax.lax.stop_gradient(x - x0)
 
 
 def _settle(scene, which, x, target, steps):
     """`steps` Newton steps x ← x − (f(x) − target) ∇f / |∇f|² towards the level set
-    f = target of surface `which` (no gradient): one loop, so that the program holds one
-    copy of f and ∇f whatever `steps`."""
+    f = target of surface `which` (no gradient), for one origin x [3] or for k origins
+    [k, 3] (targets [k]).
+
+    One loop of k · steps iterations, each one step of one origin (origin i mod k at
+    iteration i), so that the program holds one copy of f and ∇f whatever `steps` and k:
+    the lane kernels run a batch of k origins as k copies of the step (the showcase's
+    reflected and refracted origins: a third of its "fused" compile time), and k
+    evaluations are what the batch costs anyway.
+    """
     def f_and_grad(q):
         return value_and_gradient(lambda x: surface_distance(scene, which, x), q)
 
-    def body(_, x):
-        f, g = f_and_grad(x)
-        return x - safe_div(f - target, dot(g, g)) * g
+    if x.ndim == 1:
+        def body(_, x):
+            f, g = f_and_grad(x)
+            return x - safe_div(f - target, dot(g, g)) * g
 
-    return repeat(steps, body, x)
+        return repeat(steps, body, x)
+    k = x.shape[0]
+
+    def body_k(i, xs):
+        j = i % k
+        rows = [xs[m] for m in range(k)]
+        x, goal = select(rows, j), select([target[m] for m in range(k)], j)
+        f, g = f_and_grad(x)
+        x = x - safe_div(f - goal, dot(g, g)) * g
+        return jnp.stack([jnp.where(j == m, x, rows[m]) for m in range(k)])
+
+    return repeat(k * steps, body_k, x)
 
 
 def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True, origin=None):
@@ -226,13 +242,22 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     of every height field (marched by `HeightField.intersect`). One ray."""
     surface = scene.surface
     planes = analytic_planes(surface) if getattr(settings, "analytic_planes", False) else []
+    # The normal at the hit from the Newton loop's copy of f where it runs.
     hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max,
-                       fields=("steps", "inside") + (MEET_FIELDS if planes else ()))
+                       fields=("steps", "inside") + (MEET_FIELDS if planes else ()),
+                       normal=settings.normal_mode == "autodiff")
     t, found, steps, inside = hit.t, hit.hit, hit.steps, hit.inside
+    met = None
     if planes:
-        t, found = _meet_planes(planes, origin, direction, hit, settings, t_max)
+        t, found, met = _meet_planes(planes, origin, direction, hit, settings, t_max)
     p = origin + t * direction
-    normal, material = normal_and_material(surface, p, settings)
+    if hit.normal is None:
+        normal, material = normal_and_material(surface, p, settings)
+    else:  # the Newton loop's, or a met plane's at its analytic t
+        normal, material = hit.normal, hit.material
+        if met is not None:
+            normal = jnp.where(met["met"], met["normal"], normal)
+            material = jnp.where(met["met"], met["material"], material)
     which = jnp.zeros((), jnp.int32)
     for k, field in enumerate(scene.heightfields):
         h = field.intersect(origin, direction, settings, cone=cone, t_max=t_max)
@@ -304,7 +329,9 @@ def _meet_planes(planes, origin, direction, hit, settings, t_max):
 
     No extra march or SDF evaluation of the scene: one plane distance per plane at the
     last sample. Differentiable in the plane, the origin and the direction (through the
-    analytic t; the conditions carry no gradient)."""
+    analytic t; the conditions carry no gradient). Also {"met", "normal", "material"}:
+    where a plane was met, its unit normal and material (what `normal_and_material`
+    gives on the plane, where it is the nearest surface)."""
     t, found = hit.t, hit.hit
     limit = jnp.asarray(settings.max_distance if t_max is None else t_max, t.dtype)
     far = PLANE_HORIZON * settings.max_distance
@@ -314,15 +341,18 @@ def _meet_planes(planes, origin, direction, hit, settings, t_max):
     last = stop_gradient(origin) + last_t * stop_gradient(direction)
     tol = rounding_floor(last) + GLIDE_RTOL * jnp.abs(last_d)
     met = jnp.zeros_like(found)
+    normal, material = jnp.zeros_like(origin), jnp.zeros((), jnp.int32)
     for plane in planes:
         n = plane.normal / jnp.sqrt(dot(plane.normal, plane.normal))
         t_p, ok = intersect_plane(origin, direction, n, plane.offset)
-        d_p = stop_gradient(plane).distance(last)
+        d_p, m_p = stop_gradient(plane).eval(last)
         gliding = free & hit.exhausted & (jnp.abs(d_p - last_d) <= tol) & (t_p > last_t)
         meet = (escaped | gliding) & ok & (t_p < far) & ((~met) | (t_p < t))
         t = jnp.where(meet, t_p, t)
+        normal = jnp.where(meet, normalize(plane.normal), normal)
+        material = jnp.where(meet, m_p, material)
         met = met | meet
-    return t, found | met
+    return t, found | met, {"met": met, "normal": normal, "material": material}
 
 
 def visibility(scene, origin, wi, distance, settings):

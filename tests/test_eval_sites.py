@@ -15,6 +15,7 @@ import traceback
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxrt as jr
@@ -74,15 +75,17 @@ def _counts(settings, fn=None):
 @pytest.mark.parametrize("shadows", ["soft", "hard"])
 def test_each_site_evaluates_the_scene_once_whatever_the_step_counts(shadows):
     """A diffuse scene with one light: the camera march (1), the Newton polish's loop
-    (f and ∇f, 1), the normal with its material (1), the origin settling (1) and the
-    shadow march (1), for every newton_steps ≥ 1 and spawn_steps ≥ 1. The last Newton
-    step and the penumbra take f's value from their marches: only a derivative adds
-    their evaluation (`trace.evaluated`), one each."""
+    (f and ∇f, 1, which also gives the normal and material at the hit), the origin
+    settling (1) and the shadow march (1), for every newton_steps ≥ 1 and
+    spawn_steps ≥ 1. The last Newton step, the normal and the penumbra take their values
+    from the marches: only a derivative adds their evaluation (`trace.evaluated`), one
+    each."""
     # "march": the camera ray's and the shadow ray's (sphere-traced, unpolished, if hard).
-    expected = {"march": 2, "newton_march": 1, "normal_and_material": 1, "surface_distance": 1}
-    # A derivative adds the last Newton step's and the penumbra's (the latter is traced
-    # when the light scan is differentiated, so it is counted there, not by name).
-    added = 2 if shadows == "soft" else 1
+    expected = {"march": 2, "newton_march": 1, "surface_distance": 1}
+    # A derivative adds the last Newton step's, the normal's and the penumbra's (the
+    # latter is traced when the light scan is differentiated, so it is counted there,
+    # not by name).
+    added = 3 if shadows == "soft" else 2
     o, d, cone = jnp.array([0.0, 1.0, -5.0]), jnp.array([0.0, 0.0, 1.0]), jnp.zeros(2)
     for newton, spawn, budget in ((1, 1, 8), (2, 2, 128), (5, 4, 300)):
         settings = jr.RenderSettings(shadows=shadows, newton_steps=newton, spawn_steps=spawn,
@@ -94,7 +97,7 @@ def test_each_site_evaluates_the_scene_once_whatever_the_step_counts(shadows):
             return eqx.filter_grad(lambda s: jnp.sum(rgb(s)))(scene)
 
         counts = _counts(settings, loss)
-        assert counts["newton_at"] == 1
+        assert counts["newton_at"] == 1 and counts["unit_gradient"] == 1
         assert sum(counts.values()) == sum(expected.values()) + added, counts
         assert all(counts[site] >= n for site, n in expected.items()), counts
 
@@ -164,8 +167,8 @@ def test_plain_form_holds_a_fixed_few_copies_per_march():
     each (f(o), the loop's step, the finish: the secant point, the sample after the
     last), the shadow's golden section three (x1, x2, the loop's step), whatever the
     budgets; loops of at most `form.PLAIN_UNROLL` iterations are straight code (the
-    Newton polish holds newton_steps copies, the settling spawn_steps), longer ones
-    stay loops (one copy)."""
+    Newton polish holds newton_steps + 1 copies, its last one the normal's, the settling
+    spawn_steps), longer ones stay loops (one copy)."""
     o, wi = jnp.array([0.0, -0.5, -3.0]), jnp.array([0.0, 1.0, 0.0])
     with form.using("plain"):
         for budget in (4, 64):
@@ -180,7 +183,33 @@ def test_plain_form_holds_a_fixed_few_copies_per_march():
         for newton, spawn in ((1, 1), (2, 2), (form.PLAIN_UNROLL + 1, 4)):
             settings = jr.RenderSettings(shadows="soft", newton_steps=newton, spawn_steps=spawn)
             counts = _counts(settings)
-            polish = newton if newton <= form.PLAIN_UNROLL else 1
+            polish = newton + 1 if newton + 1 <= form.PLAIN_UNROLL else 1
             assert counts == {"_plain": 6, "golden": 3, "newton_march": polish,
-                              "normal_and_material": 1, "surface_distance": spawn}, counts
+                              "surface_distance": spawn}, counts
     assert form.current() == "phases"
+
+
+@pytest.mark.parametrize("steps", [1, 2, 3])
+def test_origins_settled_in_one_loop_equal_each_settled_alone(steps):
+    """`integrator.spawn_origin` settles k origins of one hit in one loop of k · steps
+    iterations (one copy of f and ∇f in the program, `_settle`): each origin ends where
+    its own `steps` Newton steps take it (float64, to rounding), and next to a box's
+    edge, where the first step lands on the level set f = ±offset of the face it was
+    pushed off, the origin outside is offset away from the box (f = +offset)."""
+    box = jr.sdf.Box(half_extents=(1.0, 1.0, 1.0), material=0)
+    scene = jr.Scene(surface=box, materials=[jr.bsdf.Lambert(0.5)], lights=[])
+    which = jnp.zeros((), jnp.int32)
+    # A hit on the top face, next to its edge with the side face x = 1.
+    p = jnp.array([0.999, 1.0, 0.2])
+    n = jnp.array([0.0, 1.0, 0.0])
+    offset = jnp.asarray(0.01)
+    toward, outside = jnp.array([1.0, -1.0]), jnp.array([1.0, -1.0])
+    together = integrator.spawn_origin(scene, which, jnp.stack([p, p]), toward[:, None] * n,
+                                       jnp.stack([offset, offset]), outside, steps=steps)
+    for k in range(2):
+        alone = integrator.spawn_origin(scene, which, p, toward[k] * n, offset, outside[k],
+                                        steps=steps)
+        np.testing.assert_allclose(together[k], alone, rtol=0, atol=1e-15)
+    # Outside, after enough steps to clear both faces: f = +offset.
+    if steps >= 2:
+        assert float(box(together[0])) == pytest.approx(0.01, rel=1e-9)

@@ -192,9 +192,11 @@ def test_aovs_left_out_are_none_and_leave_rgb_unchanged(backend):
     some = jr.render(scene, camera, settings.replace(aovs=["depth"]))  # a TOML list
     assert some.normal is None and some.albedo is None and some.steps is None
     assert some.coverage is None
-    # two programs: equal to rounding (a few ulps where XLA fuses them differently)
-    np.testing.assert_array_max_ulp(np.asarray(some.rgb), np.asarray(full.rgb), maxulp=16)
-    np.testing.assert_array_max_ulp(np.asarray(some.depth), np.asarray(full.depth), maxulp=16)
+    # two programs: equal to rounding (a few ulps where XLA fuses them differently; the
+    # Newton polish of a ray grazing the floor 27 units away converges to within the
+    # rounding of f there, which at the tests' -O0 moved its float32 t by 10 ulps)
+    np.testing.assert_allclose(np.asarray(some.rgb), np.asarray(full.rgb), rtol=2e-6, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(some.depth), np.asarray(full.depth), rtol=2e-6)
 
 
 @pytest.mark.parametrize("platform,auto", [("cpu", 4096), ("gpu", 1 << 18)])

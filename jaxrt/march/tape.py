@@ -89,15 +89,19 @@ def off():
     return _using(None)
 
 
-def march(fn, *args):
-    """`fn(*args)` (a march: a pytree of arrays, no gradient) through the active tape."""
+def march(fn, *args, keep=None):
+    """`fn(*args)` (a march: a pytree of arrays, no gradient) through the active tape.
+
+    `keep`: for a march that returns a dict, the keys that the tape holds; the others
+    are by-products for the program that runs the march (a replay, which gets only the
+    kept ones, computes them otherwise)."""
     tape = current()
     if tape is not None and tape.mode == "replay":
         return tape.take()
     with off():  # marches called by a march are part of it
         out = jax.tree_util.tree_map(jax.lax.stop_gradient, fn(*args))
     if tape is not None:
-        tape.entries.append(out)
+        tape.entries.append(out if keep is None else {k: out[k] for k in keep})
     return out
 
 
