@@ -136,7 +136,7 @@ def _recorded(kernel, params, samples, settings, grid, offset):
                              grid, offset)
         entries = jax.lax.stop_gradient(out["tape"])
         replay = lambda d, s: _replay(kernel, eqx.combine(d, static), s, entries, kinds, gather,  # noqa: E731
-                                      wide, settings.kernel.replay_remat)
+                                      wide)
         _, tangent = jax.jvp(replay, primals, tangents)
         return out["image"], tangent
 
@@ -270,7 +270,7 @@ def _record(kernel, params, samples, settings, grid, offset, info=None):
     return out, kinds[0]
 
 
-def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False, remat=False):
+def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False):
     """The kernel vmapped over all `samples` at once with every march read from `entries`
     (the records of `_record`, `kinds` its boolean ones): loop-free and differentiable.
 
@@ -290,10 +290,7 @@ def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False, remat
     only where alive, in batches of `gather` (`tape.gathering`); the scene then enters
     unbatched, since the batches close over it.
 
-    With `wide`, stacked unions evaluate their children at once (`tape.wide_unions`).
-    With `remat`, the per-sample program is under `jax.checkpoint`: the derivative keeps
-    no intermediate of the replay, and its reverse pass recomputes them from the
-    samples, the records and the parameters (`KernelOptions.replay_remat`)."""
+    With `wide`, stacked unions evaluate their children at once (`tape.wide_unions`)."""
     dyn, static = eqx.partition(params, eqx.is_inexact_array)
     small, large = eqx.partition(dyn, lambda x: x.size <= PER_SAMPLE_MAX)
     entries = jax.tree_util.tree_map(lambda x, b: x != 0 if b else x, entries, kinds)
@@ -304,8 +301,6 @@ def _replay(kernel, params, samples, entries, kinds, gather=0, wide=False, remat
         with tape.replaying(entry), tape.wide_unions(wide):
             return kernel((*camera.generate_ray(s[0], s[1]), s), scene, camera)
 
-    if remat:  # the reverse pass recomputes a sample's values from its inputs
-        one = jax.checkpoint(one, prevent_cse=False)
     if not gather:
         per_sample = jax.tree_util.tree_map(lambda x: _per_sample(x, n), small)
         return jax.vmap(one)(per_sample, samples, entries)

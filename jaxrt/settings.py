@@ -122,15 +122,6 @@ class KernelOptions:
                          over them (`sdf.stack.stacked_eval`); None (default): on a
                          GPU, where each iteration of a scan is kernels of their own
                          (64 spheres, 512×512, H100: value_and_grad 9.4 → 4.9 ms).
-      replay_remat       a gradient's replay keeps none of its intermediates for the
-                         reverse pass, which recomputes them (`jax.checkpoint` over the
-                         per-sample program with `prevent_cse=False`,
-                         `render._replay`). Off: on 2 CPU cores it changes neither
-                         the gradient nor its time (within noise); on an H200 the same
-                         with `prevent_cse=True` made the Warp scene's gradient slower
-                         (4.47 against 3.35 ms) and larger (1 248 against 742 MiB);
-                         with `prevent_cse=False` it is not measured on a GPU
-                         (docs/performance.md, "Session 34" and "Session 32").
       replay_kernel      a gradient (reverse mode) differentiates the replay in a
                          lane kernel of its own ("fused" tiles, or one Pallas kernel),
                          each sample's VJP of its replay summed over the samples
@@ -182,7 +173,6 @@ class KernelOptions:
     plain_max_lane_ops: int = 5000
     replay_gather: int = 256
     replay_wide_unions: bool | None = None
-    replay_remat: bool = False
     replay_kernel: bool | None = None
     replay_kernel_max_lane_ops: int = 5000
     xla: str = "default"
@@ -207,7 +197,7 @@ class KernelOptions:
         for name in ("replay_wide_unions", "replay_kernel"):
             need(getattr(self, name) is None or isinstance(getattr(self, name), bool), name,
                  "true, false or None")
-        for name in ("materialize", "replay_remat", "pallas_fma", "pallas_uniforms",
+        for name in ("materialize", "pallas_fma", "pallas_uniforms",
                      "pallas_scan_loops", "pallas_fast_math"):
             need(isinstance(getattr(self, name), bool), name, "true or false")
         for name in ("auto_max_lane_ops_fused", "auto_max_lane_ops_pallas", "plain_max_lane_ops",

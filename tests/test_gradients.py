@@ -713,33 +713,6 @@ def test_replay_shades_only_the_live_rays_of_the_tree(recursion):
     np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
 
 
-def test_replay_recomputed_in_the_reverse_pass_has_the_same_gradient():
-    """`KernelOptions.replay_remat` (the replay under `jax.checkpoint`) recomputes in the
-    reverse pass what the replay would keep: the same arithmetic, so the same value and
-    gradient (float64, every kind of march; on and off are two different programs: the
-    derivative of the one holds one more `remat2`)."""
-    scene, camera, settings = _replay_scene()
-    settings = settings.replace(backend="fused")
-    weights = jnp.linspace(0.5, 1.5, 3)
-    dyn, static = eqx.partition((scene, camera), eqx.is_inexact_array)
-    grads, remats = {}, {}
-    for remat in (False, True):
-        s = settings.replace(kernel=jr.KernelOptions(replay_remat=remat))
-
-        def loss(d, s=s):
-            return jnp.sum(jr.render(*eqx.combine(d, static), s).rgb * weights)
-
-        grad_fn = jax.value_and_grad(loss)
-        remats[remat] = str(jax.make_jaxpr(grad_fn)(dyn)).count("remat2[")
-        value, grad = grad_fn(dyn)
-        grads[remat] = (float(value), np.asarray(ravel_pytree(grad)[0]))
-    assert remats[True] == remats[False] + 1
-    assert grads[True][0] == pytest.approx(grads[False][0], rel=1e-12)
-    a, b = grads[True][1], grads[False][1]
-    assert np.max(np.abs(b)) > 0
-    np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
-
-
 @pytest.mark.parametrize("variant, backend", [
     ("whitted", "fused"),
     pytest.param("silhouette", "fused", marks=pytest.mark.slow),
