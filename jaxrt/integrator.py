@@ -21,6 +21,11 @@ slot in the batch but stop at their first step and add nothing.
 
 intersectScene is `intersect_scene`: the sphere-traced SDF `scene.surface` and every
 height field of `scene.heightfields` (marched as in the notes); the nearest hit wins.
+After the march, one bounded loop with one copy of f and ∇f polishes the SDF's hit
+(Newton), takes the normal and material at the root and settles the origins of the
+rays it spawns (`trace.newton_march`): the scene's SDF is in the program of a shading
+step three times (the march, that loop, the shadow march), one step for the whole
+tree with "scan".
 
 Precision (notes, "Precision"): a secondary ray starts `spawn_offset` = ray_offset ·
 (ε + 8 ulp·max|pᵢ|) off the surface, on the side it leaves (the viewer's side for

@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .march import tape
+from .march import form, tape
 from .march.search import repeat
 from .march.sphere import SphereTracing, hit_epsilon as hit_epsilon, march as march_sphere
 from .vecmath import dot, normalize, safe_div, safe_sqrt, stop_gradient as stop_gradient
@@ -307,7 +307,12 @@ def newton_march(sdf, origin, direction, t, hit, steps, normal=False, settle=Non
     surface = (jnp.zeros_like(origin), jnp.zeros((), jnp.int32)) if normal else ()
     origins = (jnp.zeros((k, 3), origin.dtype), jnp.zeros(k, origin.dtype))
     newton = (t, hit, inf, t, zero, zero)
-    (_, _, _, base, slope, f), surface, (xs, _) = repeat(total, body, (newton, surface, origins))
+    # The "plain" form unrolls the loop where it would unroll its parts (the Newton
+    # steps, the settling): the Warp scene (128×64, "fused", 2 CPU cores) renders in
+    # 14.4 ms with it as straight code, 16.2 ms with a loop of its five iterations.
+    short = steps <= form.PLAIN_UNROLL and (settle is None or settle.steps <= form.PLAIN_UNROLL)
+    (_, _, _, base, slope, f), surface, (xs, _) = repeat(
+        total, body, (newton, surface, origins), unroll=total if short else None)
     out = {"t": base, "slope": slope, "f": f}
     if normal:
         out.update(normal=normalize(surface[0]), material=surface[1])

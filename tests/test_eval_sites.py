@@ -168,7 +168,8 @@ def test_plain_form_holds_a_fixed_few_copies_per_march():
     last), the shadow's golden section three (x1, x2, the loop's step), whatever the
     budgets; loops of at most `form.PLAIN_UNROLL` iterations are straight code (the
     Newton loop, newton_steps + 1 + spawn_steps iterations with the normal and the
-    shadow ray's origin, holds as many copies), longer ones stay loops (one copy)."""
+    shadow ray's origin, holds as many copies where newton_steps and spawn_steps are
+    at most that), longer ones stay loops (one copy)."""
     o, wi = jnp.array([0.0, -0.5, -3.0]), jnp.array([0.0, 1.0, 0.0])
     with form.using("plain"):
         for budget in (4, 64):
@@ -183,9 +184,9 @@ def test_plain_form_holds_a_fixed_few_copies_per_march():
         for newton, spawn in ((1, 1), (2, 2), (form.PLAIN_UNROLL + 1, 4)):
             settings = jr.RenderSettings(shadows="soft", newton_steps=newton, spawn_steps=spawn)
             counts = _counts(settings)
-            loop = newton + 1 + spawn
+            short = max(newton, spawn) <= form.PLAIN_UNROLL
             assert counts == {"_plain": 6, "golden": 3,
-                              "newton_march": loop if loop <= form.PLAIN_UNROLL else 1}, counts
+                              "newton_march": newton + 1 + spawn if short else 1}, counts
     assert form.current() == "phases"
 
 

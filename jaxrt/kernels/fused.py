@@ -276,7 +276,7 @@ def _tiles(traced, dyn, samples, settings, grid, extra=(), summed=False):
     s = tiled(samples)
     per = [tiled(x) for x in jax.tree_util.tree_leaves(extra)]
     # the padding's samples (copies of the edge's) count for nothing in a sum
-    real = _to_tiles_real(grid, tile)
+    real = _to_tiles_real(grid, tile) if summed else None
 
     def run_tile(block):
         sb, pb, rb = block
@@ -292,7 +292,8 @@ def _tiles(traced, dyn, samples, settings, grid, extra=(), summed=False):
         return outs
 
     if s.shape[0] == 1:
-        res = [r[None] for r in run_tile((s[0], [x[0] for x in per], real[0]))]
+        res = [r[None] for r in run_tile((s[0], [x[0] for x in per],
+                                          None if real is None else real[0]))]
     else:
         res = lax.map(run_tile, (s, per, real))
     if summed:
