@@ -22,10 +22,9 @@ slot in the batch but stop at their first step and add nothing.
 intersectScene is `intersect_scene`: the sphere-traced SDF `scene.surface` and every
 height field of `scene.heightfields` (marched as in the notes); the nearest hit wins.
 After the march, one bounded loop with one copy of f and ∇f polishes the SDF's hit
-(Newton), takes the normal and material at the root and settles the origins of the
-rays it spawns (`trace.newton_march`): the scene's SDF is in the program of a shading
-step three times (the march, that loop, the shadow march), one step for the whole
-tree with "scan".
+(Newton) and takes the normal and material at the root (`trace.newton_march`), and
+one more settles the origins of the rays it spawns (`spawn_origin`): a shading step
+holds the scene's SDF four times (the march, those two loops, the shadow march).
 
 Precision (notes, "Precision"): a secondary ray starts `spawn_offset` = ray_offset ·
 (ε + 8 ulp·max|pᵢ|) off the surface, on the side it leaves (the viewer's side for
@@ -59,7 +58,7 @@ from .lights import shadow_ray
 from .march import SphereTracing, tape
 from .march.sphere import rounding_floor
 from .march.search import repeat
-from .trace import (Settle, hit_epsilon, intersect_plane, normal_and_material, sphere_trace,
+from .trace import (hit_epsilon, intersect_plane, normal_and_material, sphere_trace,
                     value_and_gradient)
 from .vecmath import dot, normalize, safe_div, safe_norm, stop_gradient, to_local
 
@@ -94,52 +93,42 @@ def spawn_offset(p, settings, epsilon=None):
     return settings.ray_offset * (eps + rounding_floor(p))
 
 
-def surface_distance(scene, which, x, sdf=True):
+def surface_distance(scene, which, x):
     """Distance bound of surface `which` (0: the SDF, scaled by 1/L; k: height field
-    k − 1) at x: the function whose ε band the marchers test. `sdf=False`: the height
-    fields only (`which` ≥ 1), with no copy of the SDF."""
-    values = [field.eval(x)[0] for field in scene.heightfields]
-    if not sdf:
-        return select(values, which - 1)
-    return select([scene.surface(x) / scene.surface.lipschitz().astype(x.dtype)] + values, which)
+    k − 1) at x: the function whose ε band the marchers test."""
+    values = [scene.surface(x) / scene.surface.lipschitz().astype(x.dtype)]
+    values += [field.eval(x)[0] for field in scene.heightfields]
+    return select(values, which)
 
 
-def spawn_starts(p, n, entering, offset, sides):
-    """Where the secondary rays of a hit at p start, before `spawn_origin` settles them:
-    x₀ = p + offset · n on the viewer's side (n faces the viewer) and p − offset · n on
-    the far side, for each of the static `sides` (+1, −1); and the level sets they
-    settle on, f = ±offset (+ where x₀ is outside the solid: on the viewer's side iff
-    the ray arrived from outside, `entering`). Returns (x₀ [k, 3], targets [k])."""
-    toward = jnp.asarray(sides, p.dtype)
-    outside = jnp.where(entering, toward, -toward)
-    return p + offset * (toward[:, None] * n), outside * offset
+def spawn_origin(scene, which, p, n, offset, side, steps=2):
+    """Origin of a secondary ray that leaves surface `which` at p along the side of the
+    unit normal n (n points to where the ray goes: outward for a reflection seen from
+    outside, inward for a refraction into the object, …); side = +1 if that is the
+    outside of the surface, −1 the inside.
 
-
-def spawn_origin(scene, which, x0, target, steps=2, sdf=True):
-    """Origin of a secondary ray that leaves surface `which`: x₀ (`spawn_starts`: the
-    hit point moved by the offset along the normal, to the side the ray leaves on), then
-    `steps` (settings.spawn_steps) Newton steps towards the level set f(x) = target
-    (± the offset) of the surface's distance bound f: x ← x − (f(x) − target) ∇f / |∇f|².
-
+    x₀ = p + offset · n, then `steps` (settings.spawn_steps) Newton steps towards the
+    level set f(x) = side · offset of the surface's distance bound f:
+    x ← x − (f(x) − side · offset) ∇f / |∇f|².
     Along a smooth surface x₀ is already there and the steps change nothing; near an
-    edge or a corner, where another face of the same surface is nearer than the offset,
+    edge or a corner, where another face of the same surface is nearer than `offset`,
     they push the origin out of that face's ε band too, where the ray would otherwise
     re-hit it at t = 0 (one step per face that can be nearer than the offset: two settle
     the edges and corners of boxes, a third face is then already ≥ offset away). The
-    correction carries no gradient (the origin's gradient is that of x₀). x₀ [k, 3] and
-    target [k]: the k origins of one hit settle in one loop (`_settle`). `sdf=False`: a
-    hit on a height field (`which` ≥ 1), settled with no copy of the SDF. (A hit on the
-    SDF settles its origins in its Newton loop where that runs: `intersect_scene`.)
+    correction carries no gradient (the origin's gradient is that of p). p, n, offset
+    and side may carry a leading batch axis (several origins from one hit share one
+    compiled step).
     """
+    x0 = p + jnp.asarray(offset)[..., None] * n
     if steps == 0:
         return x0
     # Through the tape: the settled origin is a record (a bounded loop, no gradient).
-    x = tape.march(partial(_settle, steps=steps, sdf=sdf), stop_gradient(scene), which,
-                   jax.lax.stop_gradient(x0), jax.lax.stop_gradient(target))
+    x = tape.march(partial(_settle, steps=steps), stop_gradient(scene), which,
+                   jax.lax.stop_gradient(x0), jax.lax.stop_gradient(side * offset))
     return x0 + jax.lax.stop_gradient(x - x0)
 
 
-def _settle(scene, which, x, target, steps, sdf=True):
+def _settle(scene, which, x, target, steps):
     """`steps` Newton steps x ← x − (f(x) − target) ∇f / |∇f|² towards the level set
     f = target of surface `which` (no gradient), for one origin x [3] or for k origins
     [k, 3] (targets [k]).
@@ -151,7 +140,7 @@ def _settle(scene, which, x, target, steps, sdf=True):
     evaluations are what the batch costs anyway.
     """
     def f_and_grad(q):
-        return value_and_gradient(lambda x: surface_distance(scene, which, x, sdf), q)
+        return value_and_gradient(lambda x: surface_distance(scene, which, x), q)
 
     if x.ndim == 1:
         def body(_, x):
@@ -241,8 +230,6 @@ class SceneHit(NamedTuple):
     inside    the ray started inside the surface it hit (below the height field): it
               leaves the solid there. A ray that started outside arrives from outside,
               whatever the sign of the computed normal (`shade_ray`).
-    origins   [k, 3] the settled origins of the rays that leave the hit on
-              `intersect_scene`'s `sides` (no gradient), or None.
     """
 
     t: jnp.ndarray
@@ -252,38 +239,17 @@ class SceneHit(NamedTuple):
     material: jnp.ndarray
     surface: jnp.ndarray
     inside: jnp.ndarray
-    origins: jnp.ndarray | None = None
 
 
-def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None, sides=()):
+def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     """intersectScene of the notes: the nearest of the sphere-traced SDF `surface` and
-    of every height field (marched by `HeightField.intersect`). One ray.
-
-    `sides` (static): the sides (+1 the viewer's, −1 the far side) from which rays leave
-    the hit; their settled origins (`spawn_starts`, `spawn_origin`) are
-    `SceneHit.origins` where the SDF's Newton loop runs (it settles them with its copy
-    of f), else None."""
+    of every height field (marched by `HeightField.intersect`). One ray."""
     surface = scene.surface
     planes = analytic_planes(surface) if getattr(settings, "analytic_planes", False) else []
-    cone = jnp.zeros(2, origin.dtype) if cone is None else cone
-    autodiff = settings.normal_mode == "autodiff"
-
-    def start(t, normal, inside):  # where the origins start, for a hit at o + t d
-        o, d, c = stop_gradient(origin), stop_gradient(direction), stop_gradient(cone)
-        p = o + t * d
-        n = jnp.where(dot(normal, d) <= 0.0, normal, -normal)
-        offset = spawn_offset(p, settings, hit_epsilon(settings, t, c))
-        return spawn_starts(p, n, ~inside, offset, sides)
-
-    settle = None
-    if sides and autodiff and settings.spawn_steps:
-        settle = Settle(start, len(sides), settings.spawn_steps,
-                        stop_gradient(surface.lipschitz()).astype(origin.dtype))
-    # The normal, and the origins of the rays that leave the hit, from the Newton loop's
-    # copy of f where it runs.
+    # The normal at the hit from the Newton loop's copy of f where it runs.
     hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max,
                        fields=("steps", "inside") + (MEET_FIELDS if planes else ()),
-                       normal=autodiff, settle=settle)
+                       normal=settings.normal_mode == "autodiff")
     t, found, steps, inside = hit.t, hit.hit, hit.steps, hit.inside
     met = None
     if planes:
@@ -308,17 +274,7 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None, s
         found = found | h.hit
         steps = steps + h.steps
     material = jnp.clip(material, 0, len(scene.materials) - 1)
-    origins = hit.origins
-    if origins is not None and (planes or scene.heightfields):
-        # Not the SDF's loop's hit: a met plane's origins start settled (a plane has no
-        # edge to clear), a height field's settle on it alone.
-        x0, targets = start(stop_gradient(t), stop_gradient(normal), inside)
-        if planes:
-            origins = jnp.where(met["met"], x0, origins)
-        if scene.heightfields:
-            settled = spawn_origin(scene, which, x0, targets, settings.spawn_steps, sdf=False)
-            origins = jnp.where(which > 0, settled, origins)
-    return SceneHit(t, found, steps, normal, material, which, inside, origins)
+    return SceneHit(t, found, steps, normal, material, which, inside)
 
 
 #: Analytic planes are met up to this many max_distances away: the floor then reaches
@@ -528,15 +484,7 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
     o, d, cone = ray.origin, ray.direction, ray.cone
     dtype = o.dtype
     t_max = jnp.where(ray.alive, jnp.asarray(settings.max_distance, dtype), 0.0)
-    spawning = spawn and bool(tree.branches)
-    # Origins of secondary rays: on the viewer's side (shadow and reflected rays; the
-    # outside iff the ray arrived from outside) and on the far side (refracted rays).
-    sides = []
-    if tree.direct or (spawning and "reflect" in tree.branches):
-        sides.append(1.0)
-    if spawning and "transmit" in tree.branches:
-        sides.append(-1.0)
-    hit = intersect_scene(scene, o, d, settings, cone=cone, t_max=t_max, sides=tuple(sides))
+    hit = intersect_scene(scene, o, d, settings, cone=cone, t_max=t_max)
     found = hit.hit & ray.alive
     p = o + hit.t * d
     material = hit.material
@@ -551,13 +499,21 @@ def shade_ray(scene, ray, settings, tree=None, colour=None, wavelength=None, spa
     wo = -d
 
     offset = spawn_offset(p, settings, hit_epsilon(settings, hit.t, cone))
+    spawning = spawn and bool(tree.branches)
+    # Origins of secondary rays: on the viewer's side (shadow and reflected rays; the
+    # outside iff the ray arrived from outside) and on the far side (refracted rays).
+    sides = []
+    if tree.direct or (spawning and "reflect" in tree.branches):
+        sides.append(1.0)
+    if spawning and "transmit" in tree.branches:
+        sides.append(-1.0)
     origins = {}
     if sides:
-        x0, targets = spawn_starts(p, n, entering, offset, sides)
-        if hit.origins is None:
-            starts = spawn_origin(scene, hit.surface, x0, targets, settings.spawn_steps)
-        else:  # settled by intersect_scene; the gradient is that of p
-            starts = x0 + jax.lax.stop_gradient(hit.origins - x0)
+        toward = jnp.asarray(sides, dtype)
+        outside = jnp.where(entering, toward, -toward)
+        starts = spawn_origin(scene, hit.surface, jnp.broadcast_to(p, (len(sides), 3)),
+                              toward[:, None] * n, jnp.broadcast_to(offset, (len(sides),)), outside,
+                              steps=settings.spawn_steps)
         origins = {side: starts[k] for k, side in enumerate(sides)}
     above, below = origins.get(1.0), origins.get(-1.0)
     if tree.direct:

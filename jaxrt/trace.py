@@ -40,15 +40,11 @@ final approach to a hit is not a near miss (the ratio falls to ~0 there), so a r
 hits the floor just behind a sphere still reports its near miss of the sphere.
 """
 
-from functools import partial
-from typing import Callable, NamedTuple
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from .march import form, tape
+from .march import tape
 from .march.search import repeat
 from .march.sphere import SphereTracing, hit_epsilon as hit_epsilon, march as march_sphere
 from .vecmath import dot, normalize, safe_div, safe_sqrt, stop_gradient as stop_gradient
@@ -89,9 +85,6 @@ class Hit(eqx.Module):
                loop evaluates in one more iteration (`newton_march`); None where that
                loop does not run (newton_steps = 0, root_solver "optimistix") or is
                replayed (the tape holds its t, not its normal).
-    origins    with `sphere_trace(..., settle=Settle(...))`, the settled origins [k, 3]
-               of the rays that leave the hit (no gradient; `newton_march`), also on a
-               replay; None where the Newton loop does not run.
     """
 
     t: jnp.ndarray
@@ -107,33 +100,14 @@ class Hit(eqx.Module):
     last_d: jnp.ndarray | None = None
     normal: jnp.ndarray | None = None
     material: jnp.ndarray | None = None
-    origins: jnp.ndarray | None = None
 
 
 HIT_FIELDS = ("t", "hit", "steps", "inside", "exhausted", "closest_t", "closest_d",
               "closest_bracket", "converging", "last_t", "last_d")
 
 
-class Settle(NamedTuple):
-    """Origins that the Newton loop settles after the normal (`newton_march`): k points
-    x₀ [k, 3] near the hit, each taken by `steps` Newton steps x ← x − (g(x) − c) ∇g / |∇g|²
-    towards its level set g = c of g = f / L (`integrator.spawn_origin`).
-
-    start      (t, unit normal n at o + t d, inside) → (x₀ [k, 3], c [k]): where they
-               start, from the polished root (`inside`: the ray started inside).
-    count      k (static).
-    steps      Newton steps per origin (static).
-    lipschitz  L.
-    """
-
-    start: Callable
-    count: int
-    steps: int
-    lipschitz: jnp.ndarray
-
-
 def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None, fields=None,
-                 normal=False, settle=None):
+                 normal=False):
     """Sphere-trace one ray against `sdf`; see the module docstring.
 
     Args:
@@ -149,8 +123,6 @@ def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None, fields
         records only these when a render records its marches (`jaxrt.march.tape`).
       normal: also the normal and material at the hit (`Hit.normal`), from the Newton
         loop (one copy of f and ∇f in the program for the polish and the normal).
-      settle: with `normal`, a `Settle`: the Newton loop also settles the origins of the
-        rays that leave the hit (`Hit.origins`), with the same copy of f and ∇f.
 
     Returns: `Hit`; `t` is differentiable with respect to the scene, origin and
     direction through the implicit function theorem when the ray hits.
@@ -160,8 +132,6 @@ def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None, fields
         cone = jnp.zeros(2, origin.dtype)
     t_max = options.max_distance if t_max is None else t_max
     wanted = HIT_FIELDS if fields is None else ("t", "hit") + tuple(fields)
-    if settle is not None:
-        wanted += ("inside",)
 
     def run(sdf, origin, direction, cone, t_max):
         m = march_sphere(sdf, origin, direction, options, cone, t_max)
@@ -169,17 +139,13 @@ def sphere_trace(sdf, origin, direction, settings, cone=None, t_max=None, fields
 
     m = tape.march(run, stop_gradient(sdf), stop_gradient(origin), stop_gradient(direction),
                    stop_gradient(cone), stop_gradient(t_max))
-    if settle is not None:
-        settle = settle._replace(start=partial(settle.start, inside=m["inside"]))
-    t, record = _polish(sdf, origin, direction, m["t"], m["hit"], options, normal, settle)
+    t, record = _polish(sdf, origin, direction, m["t"], m["hit"], options, normal)
     surface = {}
     if record is not None and "normal" in record:
         p = origin + t * direction
         surface = {"normal": evaluated(jax.tree_util.Partial(unit_gradient, sdf), p,
                                        record["normal"]),
                    "material": record["material"]}
-    if record is not None and "origins" in record:
-        surface["origins"] = record["origins"]
     return Hit(**{**dict.fromkeys(HIT_FIELDS), **m, "t": t, **surface})
 
 
@@ -205,20 +171,18 @@ def polish_root(sdf, origin, direction, t, hit, settings):
     return _polish(sdf, origin, direction, t, hit, settings)[0]
 
 
-def _polish(sdf, origin, direction, t, hit, settings, normal=False, settle=None):
+def _polish(sdf, origin, direction, t, hit, settings, normal=False):
     """(`polish_root`'s t, the record of its Newton loop or None where none ran); with
     `normal`, the record also holds the unit normal and material at the polished root
-    (`newton_march`), except on a replay (the tape keeps what `newton_at` reads, and the
-    settled origins)."""
+    (`newton_march`), except on a replay (the tape keeps only what `newton_at` reads)."""
     if settings.newton_steps == 0:
         return t, None
     if settings.root_solver == "optimistix":
         return _polish_optimistix(sdf, origin, direction, t, hit, settings.newton_steps), None
     steps = settings.newton_steps
-    keep = ("t", "slope", "f") + ("origins",) * (settle is not None)
-    record = tape.march(lambda *a: newton_march(*a, steps, normal=normal, settle=settle),
-                        stop_gradient(sdf), stop_gradient(origin), stop_gradient(direction),
-                        jax.lax.stop_gradient(t), hit, keep=keep)
+    record = tape.march(lambda *a: newton_march(*a, steps, normal=normal), stop_gradient(sdf),
+                        stop_gradient(origin), stop_gradient(direction),
+                        jax.lax.stop_gradient(t), hit, keep=("t", "slope", "f"))
     return newton_at(sdf, origin, direction, record["t"], record["slope"], record["f"]), record
 
 
@@ -246,7 +210,7 @@ def value_and_gradient(f, p, has_aux=False):
     return (value_aux if has_aux else value_aux[0]), grad
 
 
-def newton_march(sdf, origin, direction, t, hit, steps, normal=False, settle=None):
+def newton_march(sdf, origin, direction, t, hit, steps, normal=False):
     """`steps` guarded Newton steps t ← t − f(o + t d) / (∇f · d) from t̂ (no gradient;
     the rule of `polish_root`). Returns {"t": the iterate from which the last kept step
     was taken (t̂ if none was), "slope": ∇f·d there (0 if none was kept, or the hit
@@ -256,30 +220,19 @@ def newton_march(sdf, origin, direction, t, hit, steps, normal=False, settle=Non
     With `normal`, the loop runs once more, at the polished root, and also returns the
     unit normal ∇f/|∇f| and the material index there ("normal", "material"): what
     `normal_and_material` would compute at the hit, from the loop's one copy of f and
-    ∇f instead of a copy of its own. With a `Settle` (k origins, s steps each), k · s
-    iterations more settle the origins that `settle.start` places from that root and
-    normal, one step of origin j mod k at the j-th of them ("origins" [k, 3]): the
-    settling of `integrator.spawn_origin` with the same copy. (The showcase's "fused"
-    render compiled 25 s with the three copies, 16 s with one.)"""
+    ∇f instead of a copy of its own (the showcase's "fused" render compiles about a
+    fifth faster)."""
     def f_and_grad(q):
         return value_and_gradient(lambda x: sdf.eval(x) if normal else (sdf(x), ()), q,
                                   has_aux=True)
 
     inf = jnp.asarray(jnp.inf, t.dtype)
     zero = jnp.zeros((), t.dtype)
-    k = 0 if settle is None else settle.count
-    total = steps + normal + k * (0 if settle is None else settle.steps)
+    material = jnp.zeros((), jnp.int32) if normal else ()
 
     def body(i, s):
-        newton, surface, (xs, targets) = s
-        t, ok, last, base, base_slope, base_f = newton
-        settling = i > steps
-        j = (i - steps - 1) % k if k else 0
-        rows = [xs[m] for m in range(k)]
-        x = origin + t * direction
-        if k:
-            x = _pick(settling, _row(rows, j), x)
-        (f, aux), grad = f_and_grad(x)
+        (t, ok, last, base, base_slope, base_f), _ = s
+        (f, aux), grad = f_and_grad(origin + t * direction)
         slope, steep = _slope(grad, direction)
         t_new = jnp.where(steep, t - safe_div(f, jnp.where(steep, slope, 1.0)), t)
         delta = jnp.abs(t_new - t)
@@ -287,57 +240,20 @@ def newton_march(sdf, origin, direction, t, hit, steps, normal=False, settle=Non
         base = jnp.where(ok, t, base)
         base_slope = jnp.where(ok, jnp.where(steep, slope, zero), base_slope)
         base_f = jnp.where(ok, f, base_f)
-        stepped = (jnp.where(ok, t_new, t), ok, delta, base, base_slope, base_f)
-        if not normal:
-            return stepped, surface, (xs, targets)
-        # The iteration after the last step evaluates at the polished root.
-        at_root = i == steps
-        newton = _pick(i < steps, stepped, newton)
-        surface = _pick(at_root, (grad, aux), surface)
-        if k:
-            g = f / settle.lipschitz
-            g_grad = grad / settle.lipschitz
-            moved = x - safe_div(g - _row([targets[m] for m in range(k)], j),
-                                 dot(g_grad, g_grad)) * g_grad
-            xs = jnp.stack([_pick(settling & (j == m), moved, rows[m]) for m in range(k)])
-            starts = settle.start(t, normalize(grad))
-            xs, targets = _pick(at_root, starts, (xs, targets))
-        return newton, surface, (xs, targets)
+        newton = (jnp.where(ok, t_new, t), ok, delta, base, base_slope, base_f)
+        if normal:  # the last iteration only evaluates, at the polished root
+            newton = jax.tree_util.tree_map(lambda a, b: jnp.where(i < steps, a, b), newton,
+                                            s[0])
+            return newton, (grad, aux)
+        return newton, ()
 
-    surface = (jnp.zeros_like(origin), jnp.zeros((), jnp.int32)) if normal else ()
-    origins = (jnp.zeros((k, 3), origin.dtype), jnp.zeros(k, origin.dtype))
-    newton = (t, hit, inf, t, zero, zero)
-    # The "plain" form unrolls the loop where it would unroll its parts (the Newton
-    # steps, the settling): the Warp scene (128×64, "fused", 2 CPU cores) renders in
-    # 14.4 ms with it as straight code, 16.2 ms with a loop of its five iterations.
-    short = steps <= form.PLAIN_UNROLL and (settle is None or settle.steps <= form.PLAIN_UNROLL)
-    (_, _, _, base, slope, f), surface, (xs, _) = repeat(
-        total, body, (newton, surface, origins), unroll=total if short else None)
+    surface = (jnp.zeros_like(origin), material) if normal else ()
+    (_, _, _, base, slope, f), surface = repeat(
+        steps + normal, body, ((t, hit, inf, t, zero, zero), surface))
     out = {"t": base, "slope": slope, "f": f}
     if normal:
         out.update(normal=normalize(surface[0]), material=surface[1])
-    if k:
-        out["origins"] = xs
     return out
-
-
-def _row(rows, index):
-    """rows[index] for a static list and a traced (or Python) index: a chain of
-    selects, as `integrator.select`."""
-    if isinstance(index, int):
-        return rows[index]
-    out = rows[0]
-    for m in range(1, len(rows)):
-        out = jnp.where(index == m, rows[m], out)
-    return out
-
-
-def _pick(predicate, a, b):
-    """`a` where `predicate`, else `b` (pytrees); a Python bool (an unrolled loop's
-    static index) picks without a select."""
-    if isinstance(predicate, (bool, np.bool_)):
-        return a if predicate else b
-    return jax.tree_util.tree_map(lambda x, y: jnp.where(predicate, x, y), a, b)
 
 
 def newton_at(sdf, origin, direction, t, slope, f=None):

@@ -75,13 +75,13 @@ def _counts(settings, fn=None):
 @pytest.mark.parametrize("shadows", ["soft", "hard"])
 def test_each_site_evaluates_the_scene_once_whatever_the_step_counts(shadows):
     """A diffuse scene with one light: the camera march (1), the Newton polish's loop
-    (f and ∇f, 1, which also gives the normal and material at the hit and settles the
-    shadow rays' origin) and the shadow march (1), for every newton_steps ≥ 1 and
+    (f and ∇f, 1, which also gives the normal and material at the hit), the origin
+    settling (1) and the shadow march (1), for every newton_steps ≥ 1 and
     spawn_steps ≥ 1. The last Newton step, the normal and the penumbra take their values
     from the marches: only a derivative adds their evaluation (`trace.evaluated`), one
     each."""
     # "march": the camera ray's and the shadow ray's (sphere-traced, unpolished, if hard).
-    expected = {"march": 2, "newton_march": 1}
+    expected = {"march": 2, "newton_march": 1, "surface_distance": 1}
     # A derivative adds the last Newton step's, the normal's and the penumbra's (the
     # latter is traced when the light scan is differentiated, so it is counted there,
     # not by name).
@@ -167,9 +167,8 @@ def test_plain_form_holds_a_fixed_few_copies_per_march():
     each (f(o), the loop's step, the finish: the secant point, the sample after the
     last), the shadow's golden section three (x1, x2, the loop's step), whatever the
     budgets; loops of at most `form.PLAIN_UNROLL` iterations are straight code (the
-    Newton loop, newton_steps + 1 + spawn_steps iterations with the normal and the
-    shadow ray's origin, holds as many copies where newton_steps and spawn_steps are
-    at most that), longer ones stay loops (one copy)."""
+    Newton polish holds newton_steps + 1 copies, its last one the normal's, the settling
+    spawn_steps), longer ones stay loops (one copy)."""
     o, wi = jnp.array([0.0, -0.5, -3.0]), jnp.array([0.0, 1.0, 0.0])
     with form.using("plain"):
         for budget in (4, 64):
@@ -184,15 +183,10 @@ def test_plain_form_holds_a_fixed_few_copies_per_march():
         for newton, spawn in ((1, 1), (2, 2), (form.PLAIN_UNROLL + 1, 4)):
             settings = jr.RenderSettings(shadows="soft", newton_steps=newton, spawn_steps=spawn)
             counts = _counts(settings)
-            short = max(newton, spawn) <= form.PLAIN_UNROLL
-            assert counts == {"_plain": 6, "golden": 3,
-                              "newton_march": newton + 1 + spawn if short else 1}, counts
+            polish = newton + 1 if newton + 1 <= form.PLAIN_UNROLL else 1
+            assert counts == {"_plain": 6, "golden": 3, "newton_march": polish,
+                              "surface_distance": spawn}, counts
     assert form.current() == "phases"
-
-
-def _box_scene():
-    box = jr.sdf.Box(half_extents=(1.0, 1.0, 1.0), material=0)
-    return jr.Scene(surface=box, materials=[jr.bsdf.Lambert(0.5)], lights=[])
 
 
 @pytest.mark.parametrize("steps", [1, 2, 3])
@@ -202,42 +196,20 @@ def test_origins_settled_in_one_loop_equal_each_settled_alone(steps):
     its own `steps` Newton steps take it (float64, to rounding), and next to a box's
     edge, where the first step lands on the level set f = ±offset of the face it was
     pushed off, the origin outside is offset away from the box (f = +offset)."""
-    scene = _box_scene()
+    box = jr.sdf.Box(half_extents=(1.0, 1.0, 1.0), material=0)
+    scene = jr.Scene(surface=box, materials=[jr.bsdf.Lambert(0.5)], lights=[])
     which = jnp.zeros((), jnp.int32)
-    # A hit on the top face, next to its edge with the side face x = 1, seen from above.
-    p, n = jnp.array([0.999, 1.0, 0.2]), jnp.array([0.0, 1.0, 0.0])
-    x0, targets = integrator.spawn_starts(p, n, jnp.asarray(True), jnp.asarray(0.01), (1.0, -1.0))
-    together = integrator.spawn_origin(scene, which, x0, targets, steps)
+    # A hit on the top face, next to its edge with the side face x = 1.
+    p = jnp.array([0.999, 1.0, 0.2])
+    n = jnp.array([0.0, 1.0, 0.0])
+    offset = jnp.asarray(0.01)
+    toward, outside = jnp.array([1.0, -1.0]), jnp.array([1.0, -1.0])
+    together = integrator.spawn_origin(scene, which, jnp.stack([p, p]), toward[:, None] * n,
+                                       jnp.stack([offset, offset]), outside, steps=steps)
     for k in range(2):
-        alone = integrator.spawn_origin(scene, which, x0[k], targets[k], steps)
+        alone = integrator.spawn_origin(scene, which, p, toward[k] * n, offset, outside[k],
+                                        steps=steps)
         np.testing.assert_allclose(together[k], alone, rtol=0, atol=1e-15)
     # Outside, after enough steps to clear both faces: f = +offset.
     if steps >= 2:
-        assert float(scene.surface(together[0])) == pytest.approx(0.01, rel=1e-9)
-
-
-@pytest.mark.parametrize("sides", [(1.0,), (1.0, -1.0)])
-def test_origins_settled_in_the_newton_loop_equal_spawn_origin(sides):
-    """Where the SDF's Newton loop runs, `intersect_scene` settles the origins of the
-    rays that leave the hit in that loop (`trace.newton_march`, with its copy of f):
-    the same points as `spawn_origin` from `spawn_starts` at the hit (float64, to
-    rounding), for rays that hit a box's faces near its edges and corners, from
-    outside and from inside."""
-    scene = _box_scene()
-    settings = jr.RenderSettings(spawn_steps=2)
-    cone = jnp.zeros(2)
-    rays = [((0.0, 3.0, 0.0), (0.9995, -3.0, 0.2)), ((-3.0, 0.5, 0.2), (3.0, 0.4995, 0.0)),
-            ((2.0, 2.5, 2.0), (-1.0, -1.5, -1.0)), ((0.2, 0.1, 0.0), (0.8, 0.8998, 0.1))]
-    moved = 0.0
-    for o, d in rays:
-        o, d = jnp.asarray(o), jnp.asarray(d) / np.linalg.norm(d)
-        hit = integrator.intersect_scene(scene, o, d, settings, cone=cone, sides=sides)
-        assert bool(hit.hit)
-        p = o + hit.t * d
-        n = jnp.where(jnp.dot(hit.normal, d) <= 0.0, hit.normal, -hit.normal)
-        offset = integrator.spawn_offset(p, settings, settings.hit_epsilon)
-        x0, targets = integrator.spawn_starts(p, n, ~hit.inside, offset, sides)
-        expected = integrator.spawn_origin(scene, hit.surface, x0, targets, 2)
-        np.testing.assert_allclose(hit.origins, expected, rtol=0, atol=1e-12)
-        moved = max(moved, float(jnp.max(jnp.abs(expected - x0))))
-    assert moved > 1e-4  # some origins needed settling
+        assert float(box(together[0])) == pytest.approx(0.01, rel=1e-9)

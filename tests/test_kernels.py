@@ -358,7 +358,7 @@ def test_auto_counts_a_stacked_union_once_unless_pallas_unrolls_it(monkeypatch):
     """A stacked union is one scan: the "fused" count does not grow with its children,
     nor does the Pallas count while the kernel keeps the scan as a loop
     (`pallas_scan_loops`, default). Unrolled, the Pallas count grows with every child,
-    and 256 spheres exceed "auto"'s Pallas limit (64 compiled in about a minute on an
+    and 128 spheres exceed "auto"'s Pallas limit (64 compiled in about a minute on an
     H100)."""
     from jaxrt.kernels import fused
 
@@ -372,7 +372,7 @@ def test_auto_counts_a_stacked_union_once_unless_pallas_unrolls_it(monkeypatch):
     monkeypatch.setattr(fused, "_lane_ops", spy)
     camera = jr.PerspectiveCamera(eye=(0.0, 3.0, -6.0), target=(0.0, 0.0, 0.0), width=4, height=4)
     counts = {}
-    for n in (8, 256):
+    for n in (8, 128):
         spheres = [jr.sdf.Translate(jr.sdf.Sphere(0.3, material=0), offset=(0.7 * i, 0.3, 0.0))
                    for i in range(n)]
         scene = jr.Scene(jr.sdf.Union(*spheres, jr.sdf.Plane((0.0, 1.0, 0.0), 0.0, material=0)),
@@ -389,10 +389,10 @@ def test_auto_counts_a_stacked_union_once_unless_pallas_unrolls_it(monkeypatch):
             counts[n, backend, loops] = sizes[backend, loops and backend == "pallas"]
     limit = jr.RenderSettings().kernel.auto_max_lane_ops_pallas
     for variant in (("fused", True), ("pallas", True)):
-        assert counts[(8, *variant)] == counts[(256, *variant)] < limit, counts
-    per_child = (counts[256, "pallas", False] - counts[8, "pallas", False]) / 248
+        assert counts[(8, *variant)] == counts[(128, *variant)] < limit, counts
+    per_child = (counts[128, "pallas", False] - counts[8, "pallas", False]) / 120
     assert per_child > 50, counts
-    assert counts[8, "pallas", False] < limit < counts[256, "pallas", False], counts
+    assert counts[8, "pallas", False] < limit < counts[128, "pallas", False], counts
 
 
 def test_auto_backend_falls_back_for_programs_too_large_to_compile_quickly():

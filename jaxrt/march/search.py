@@ -8,13 +8,12 @@ from . import form
 _INV_PHI = 0.6180339887498949
 
 
-def repeat(n, body, init, unroll=None):
+def repeat(n, body, init):
     """`body(i, state)` n times: a while loop with a static bound (a fori_loop would
     lower to `scan`, which the lane-wise kernels of `jaxrt.kernels` do not run). In the
-    "plain" form (`jaxrt.march.form`) a loop of at most `unroll` (default
-    `form.PLAIN_UNROLL`) iterations is straight code instead, `i` a Python int."""
-    unroll = form.PLAIN_UNROLL if unroll is None else unroll
-    if form.current() == "plain" and n <= unroll:
+    "plain" form (`jaxrt.march.form`) a loop of at most `form.PLAIN_UNROLL` iterations
+    is straight code instead, `i` a Python int."""
+    if form.current() == "plain" and n <= form.PLAIN_UNROLL:
         state = init
         for i in range(n):
             state = body(i, state)
