@@ -55,7 +55,7 @@ from .bsdf.scattering import reflect, refract
 from .heightfield import HeightField
 from .kinds import group_by_kind, lookup, stack
 from .lights import shadow_ray
-from .march import SphereTracing, tape
+from .march import SphereTracing, form, tape
 from .march.sphere import rounding_floor
 from .march.search import repeat
 from .trace import (hit_epsilon, intersect_plane, normal_and_material, sphere_trace,
@@ -246,20 +246,24 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
     of every height field (marched by `HeightField.intersect`). One ray."""
     surface = scene.surface
     planes = analytic_planes(surface) if getattr(settings, "analytic_planes", False) else []
-    # The normal at the hit from the Newton loop's copy of f where it runs.
+    # The normal at the hit from the Newton loop's copy of f where it runs as a loop. The
+    # "plain" form unrolls that loop, and there a third unrolled iteration made the Warp
+    # scene's Pallas program larger (2977 → 3129 lane operations) and its render on an
+    # H100 slower (0.93 → 1.07 ms) than an evaluation of its own.
+    in_loop = settings.normal_mode == "autodiff" and form.current() != "plain"
     hit = sphere_trace(surface, origin, direction, settings, cone=cone, t_max=t_max,
                        fields=("steps", "inside") + (MEET_FIELDS if planes else ()),
-                       normal=settings.normal_mode == "autodiff")
+                       normal=in_loop)
     t, found, steps, inside = hit.t, hit.hit, hit.steps, hit.inside
-    met = None
-    if planes:
-        t, found, met = _meet_planes(planes, origin, direction, hit, settings, t_max)
-    p = origin + t * direction
     if hit.normal is None:
-        normal, material = normal_and_material(surface, p, settings)
+        if planes:
+            t, found = _meet_planes(planes, origin, direction, hit, settings, t_max)
+        normal, material = normal_and_material(surface, origin + t * direction, settings)
     else:  # the Newton loop's, or a met plane's at its analytic t
         normal, material = hit.normal, hit.material
-        if met is not None:
+        if planes:
+            t, found, met = _meet_planes(planes, origin, direction, hit, settings, t_max,
+                                         surface=True)
             normal = jnp.where(met["met"], met["normal"], normal)
             material = jnp.where(met["met"], met["material"], material)
     which = jnp.zeros((), jnp.int32)
@@ -305,7 +309,7 @@ def analytic_planes(surface):
     return []
 
 
-def _meet_planes(planes, origin, direction, hit, settings, t_max):
+def _meet_planes(planes, origin, direction, hit, settings, t_max, surface=False):
     """Ray–plane intersection (notes; `trace.intersect_plane`) for the rays that the march
     `hit` (a `trace.Hit` with `MEET_FIELDS`) let go where nothing can lie between its
     last sample and the plane. Returns (t, found).
@@ -333,9 +337,9 @@ def _meet_planes(planes, origin, direction, hit, settings, t_max):
 
     No extra march or SDF evaluation of the scene: one plane distance per plane at the
     last sample. Differentiable in the plane, the origin and the direction (through the
-    analytic t; the conditions carry no gradient). Also {"met", "normal", "material"}:
-    where a plane was met, its unit normal and material (what `normal_and_material`
-    gives on the plane, where it is the nearest surface)."""
+    analytic t; the conditions carry no gradient). With `surface`, also {"met", "normal",
+    "material"}: where a plane was met, its unit normal and material (what
+    `normal_and_material` gives on the plane, where it is the nearest surface)."""
     t, found = hit.t, hit.hit
     limit = jnp.asarray(settings.max_distance if t_max is None else t_max, t.dtype)
     far = PLANE_HORIZON * settings.max_distance
@@ -353,9 +357,12 @@ def _meet_planes(planes, origin, direction, hit, settings, t_max):
         gliding = free & hit.exhausted & (jnp.abs(d_p - last_d) <= tol) & (t_p > last_t)
         meet = (escaped | gliding) & ok & (t_p < far) & ((~met) | (t_p < t))
         t = jnp.where(meet, t_p, t)
-        normal = jnp.where(meet, normalize(plane.normal), normal)
-        material = jnp.where(meet, m_p, material)
+        if surface:
+            normal = jnp.where(meet, normalize(plane.normal), normal)
+            material = jnp.where(meet, m_p, material)
         met = met | meet
+    if not surface:
+        return t, found | met
     return t, found | met, {"met": met, "normal": normal, "material": material}
 
 
