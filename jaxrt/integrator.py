@@ -24,7 +24,8 @@ height field of `scene.heightfields` (marched as in the notes); the nearest hit 
 After the march, one bounded loop with one copy of f and ∇f polishes the SDF's hit
 (Newton) and takes the normal and material at the root (`trace.newton_march`), and
 one more settles the origins of the rays it spawns (`spawn_origin`): a shading step
-holds the scene's SDF four times (the march, those two loops, the shadow march).
+holds the scene's SDF four times (the march, those two loops, the shadow march; in the
+unrolled "plain" form the normal keeps an evaluation of its own).
 
 Precision (notes, "Precision"): a secondary ray starts `spawn_offset` = ray_offset ·
 (ε + 8 ulp·max|pᵢ|) off the surface, on the side it leaves (the viewer's side for
