@@ -22,10 +22,9 @@ slot in the batch but stop at their first step and add nothing.
 intersectScene is `intersect_scene`: the sphere-traced SDF `scene.surface` and every
 height field of `scene.heightfields` (marched as in the notes); the nearest hit wins.
 After the march, one bounded loop with one copy of f and ∇f polishes the SDF's hit
-(Newton) and takes the normal and material at the root (`trace.newton_march`), and
-one more settles the origins of the rays it spawns (`spawn_origin`): a shading step
-holds the scene's SDF four times (the march, those two loops, the shadow march; in the
-unrolled "plain" form the normal keeps an evaluation of its own).
+(Newton) and takes the normal and material at the root (`trace.newton_march`; in the
+unrolled "plain" form the normal keeps an evaluation of its own), and one more settles
+the origins of the rays it spawns (`spawn_origin`).
 
 Precision (notes, "Precision"): a secondary ray starts `spawn_offset` = ray_offset ·
 (ε + 8 ulp·max|pᵢ|) off the surface, on the side it leaves (the viewer's side for
@@ -123,43 +122,27 @@ def spawn_origin(scene, which, p, n, offset, side, steps=2):
     x0 = p + jnp.asarray(offset)[..., None] * n
     if steps == 0:
         return x0
+    batched = p.ndim > 1
+    settle = partial(_settle, steps=steps)
+    settle = jax.vmap(settle, (None, None, 0, 0)) if batched else settle
     # Through the tape: the settled origin is a record (a bounded loop, no gradient).
-    x = tape.march(partial(_settle, steps=steps), stop_gradient(scene), which,
-                   jax.lax.stop_gradient(x0), jax.lax.stop_gradient(side * offset))
+    x = tape.march(settle, stop_gradient(scene), which, jax.lax.stop_gradient(x0),
+                   jax.lax.stop_gradient(side * offset))
     return x0 + jax.lax.stop_gradient(x - x0)
 
 
 def _settle(scene, which, x, target, steps):
     """`steps` Newton steps x ← x − (f(x) − target) ∇f / |∇f|² towards the level set
-    f = target of surface `which` (no gradient), for one origin x [3] or for k origins
-    [k, 3] (targets [k]).
-
-    One loop of k · steps iterations, each one step of one origin (origin i mod k at
-    iteration i), so that the program holds one copy of f and ∇f whatever `steps` and k:
-    the lane kernels run a batch of k origins as k copies of the step (the showcase's
-    reflected and refracted origins: a third of its "fused" compile time), and k
-    evaluations are what the batch costs anyway.
-    """
+    f = target of surface `which` (no gradient): one loop, so that the program holds one
+    copy of f and ∇f whatever `steps`."""
     def f_and_grad(q):
         return value_and_gradient(lambda x: surface_distance(scene, which, x), q)
 
-    if x.ndim == 1:
-        def body(_, x):
-            f, g = f_and_grad(x)
-            return x - safe_div(f - target, dot(g, g)) * g
-
-        return repeat(steps, body, x)
-    k = x.shape[0]
-
-    def body_k(i, xs):
-        j = i % k
-        rows = [xs[m] for m in range(k)]
-        x, goal = select(rows, j), select([target[m] for m in range(k)], j)
+    def body(_, x):
         f, g = f_and_grad(x)
-        x = x - safe_div(f - goal, dot(g, g)) * g
-        return jnp.stack([jnp.where(j == m, x, rows[m]) for m in range(k)])
+        return x - safe_div(f - target, dot(g, g)) * g
 
-    return repeat(k * steps, body_k, x)
+    return repeat(steps, body, x)
 
 
 def direct_lighting(scene, p, n, wo, material, settings, colour=None, active=True, origin=None):

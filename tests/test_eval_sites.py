@@ -191,12 +191,11 @@ def test_plain_form_holds_a_fixed_few_copies_per_march():
 
 
 @pytest.mark.parametrize("steps", [1, 2, 3])
-def test_origins_settled_in_one_loop_equal_each_settled_alone(steps):
-    """`integrator.spawn_origin` settles k origins of one hit in one loop of k · steps
-    iterations (one copy of f and ∇f in the program, `_settle`): each origin ends where
-    its own `steps` Newton steps take it (float64, to rounding), and next to a box's
-    edge, where the first step lands on the level set f = ±offset of the face it was
-    pushed off, the origin outside is offset away from the box (f = +offset)."""
+def test_origins_settled_together_equal_each_settled_alone(steps):
+    """`integrator.spawn_origin` settles the k origins of one hit as a batch: each ends
+    where its own `steps` Newton steps take it (float64, to rounding), and next to a
+    box's edge, where the first step lands on the level set f = ±offset of the face it
+    was pushed off, the origin outside is offset away from the box (f = +offset)."""
     box = jr.sdf.Box(half_extents=(1.0, 1.0, 1.0), material=0)
     scene = jr.Scene(surface=box, materials=[jr.bsdf.Lambert(0.5)], lights=[])
     which = jnp.zeros((), jnp.int32)
