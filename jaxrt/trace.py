@@ -220,8 +220,8 @@ def newton_march(sdf, origin, direction, t, hit, steps, normal=False):
     With `normal`, the loop runs once more, at the polished root, and also returns the
     unit normal ∇f/|∇f| and the material index there ("normal", "material"): what
     `normal_and_material` would compute at the hit, from the loop's one copy of f and
-    ∇f instead of a copy of its own (the showcase's "fused" render compiles about a
-    fifth faster)."""
+    ∇f instead of a copy of its own (the showcase's "fused" render at 32×24 on 2 CPU
+    cores, jax 0.10.2: XLA compile 21.3 → 19.4 s, one run each)."""
     def f_and_grad(q):
         return value_and_gradient(lambda x: sdf.eval(x) if normal else (sdf(x), ()), q,
                                   has_aux=True)
