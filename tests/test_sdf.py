@@ -241,6 +241,35 @@ def test_rotate_quaternion_agrees_with_matrix_and_axis_angle(q):
                                batch(node)(p), atol=1e-12)
 
 
+def test_rotations_with_their_matrices_computed_ahead_are_the_same_function():
+    """`domain.with_matrices` (what a render does at the top of its program): nested
+    rotations, one inside a union, keep their values, materials, bounding balls and
+    gradients with respect to axis and angle (float64)."""
+    from jaxrt.sdf.domain import with_matrices
+
+    inner = sdf.Rotate(sdf.Box(BOX_H, material=1), (1.0, 2.0, 3.0), 37.0)
+    surface = sdf.Union(sdf.Rotate(sdf.Translate(inner, (0.5, 0.0, 0.2)), (0.0, 1.0, 0.0), -70.0),
+                        sdf.Sphere(0.3))
+    ahead = with_matrices(surface)
+    def kinds(node):
+        return [type(node).__name__] + [k for c in node.children() for k in kinds(c)]
+    assert kinds(ahead) == ["Union", "Rotated", "Translate", "Rotated", "Box", "Sphere"]
+    p = jnp.asarray(points(15, n=400))
+    (d0, m0), (d1, m1) = jax.vmap(surface.eval)(p), jax.vmap(ahead.eval)(p)
+    np.testing.assert_allclose(d1, d0, rtol=1e-14, atol=1e-14)
+    np.testing.assert_array_equal(m1, m0)
+    for b0, b1 in zip(surface.children_[0].bounding_ball(), ahead.children_[0].bounding_ball()):
+        np.testing.assert_allclose(b1, b0, rtol=1e-14, atol=1e-14)
+
+    def loss(node, prepare):
+        node = with_matrices(node) if prepare else node
+        return jnp.sum(jnp.sin(jax.vmap(node.eval)(p)[0]))
+    g0, g1 = jax.grad(loss)(surface, False), jax.grad(loss)(surface, True)
+    for a, b in zip(jax.tree_util.tree_leaves(g0), jax.tree_util.tree_leaves(g1)):
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-14)
+    assert np.abs(g0.children_[0].angle) > 1e-3 and np.abs(g0.children_[0].child.child.axis).max() > 1e-3
+
+
 def test_transform_agrees_with_rotate_then_translate():
     axis, angle, t = (0.3, -1.0, 0.5), 64.0, (0.5, 0.2, -0.7)
     child = sdf.Box(BOX_H)

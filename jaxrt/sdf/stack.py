@@ -368,9 +368,13 @@ def prestack(surface, balls=False):
     """`surface` with every `Union` that stacks a group (`union_parts`) replaced by its
     `StackedUnion` (the same function). `render` calls it at the top of its program.
     With `balls`, each union also holds its children's bounding balls (`_balls`), which
-    `culled_eval` then reads instead of computing them at every site."""
+    `culled_eval` then reads instead of computing them at every site. Rotations get
+    their matrices here too (`domain.with_matrices`)."""
     from .combine import Union
+    from .domain import with_matrices
     from .primitives import Plane
+
+    surface = with_matrices(surface)
 
     def convert(node):
         if type(node) is not Union:
