@@ -251,6 +251,7 @@ def test_rotations_with_their_matrices_computed_ahead_are_the_same_function():
     surface = sdf.Union(sdf.Rotate(sdf.Translate(inner, (0.5, 0.0, 0.2)), (0.0, 1.0, 0.0), -70.0),
                         sdf.Sphere(0.3))
     ahead = with_matrices(surface)
+
     def kinds(node):
         return [type(node).__name__] + [k for c in node.children() for k in kinds(c)]
     assert kinds(ahead) == ["Union", "Rotated", "Translate", "Rotated", "Box", "Sphere"]

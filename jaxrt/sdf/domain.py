@@ -125,7 +125,7 @@ class Rotated(_Wrap):
     `with_matrices` builds it once at the top of a render program (`stack.prestack`),
     so that every site that evaluates the SDF (march, Newton steps, normals, shadow
     rays) costs one matrix–vector product per point, not the matrix (normalize, cos,
-    sin, 18 products) again: the showcase's "fused" render program 20 404 → 17 476
+    sin, 18 products) again: the showcase's "fused" render program 20 404 → 17 264
     equations. The same function as the `Rotate`; gradients reach its axis and angle
     through `rotation`.
     """
