@@ -239,17 +239,16 @@ def intersect_scene(scene, origin, direction, settings, cone=None, t_max=None):
                        fields=("steps", "inside") + (MEET_FIELDS if planes else ()),
                        normal=in_loop)
     t, found, steps, inside = hit.t, hit.hit, hit.steps, hit.inside
+    meets = ()
+    if planes:
+        t, found, meets = _meet_planes(planes, origin, direction, hit, settings, t_max)
     if hit.normal is None:
-        if planes:
-            t, found = _meet_planes(planes, origin, direction, hit, settings, t_max)
         normal, material = normal_and_material(surface, origin + t * direction, settings)
-    else:  # the Newton loop's, or a met plane's at its analytic t
+    else:  # the Newton loop's, or a met plane's at its analytic t (the last met is nearest)
         normal, material = hit.normal, hit.material
-        if planes:
-            t, found, met = _meet_planes(planes, origin, direction, hit, settings, t_max,
-                                         surface=True)
-            normal = jnp.where(met["met"], met["normal"], normal)
-            material = jnp.where(met["met"], met["material"], material)
+        for plane, meet in zip(planes, meets):
+            normal = jnp.where(meet, normalize(plane.normal), normal)
+            material = jnp.where(meet, plane.material, material)
     which = jnp.zeros((), jnp.int32)
     for k, field in enumerate(scene.heightfields):
         h = field.intersect(origin, direction, settings, cone=cone, t_max=t_max)
@@ -293,10 +292,11 @@ def analytic_planes(surface):
     return []
 
 
-def _meet_planes(planes, origin, direction, hit, settings, t_max, surface=False):
+def _meet_planes(planes, origin, direction, hit, settings, t_max):
     """Ray–plane intersection (notes; `trace.intersect_plane`) for the rays that the march
     `hit` (a `trace.Hit` with `MEET_FIELDS`) let go where nothing can lie between its
-    last sample and the plane. Returns (t, found).
+    last sample and the plane. Returns (t, found, meets): `meets[k]` where plane k was
+    met nearer than the planes before it (the last plane met is the nearest).
 
     Met (the nearest such plane at its analytic t, where 0 < t < PLANE_HORIZON ·
     max_distance):
@@ -321,9 +321,7 @@ def _meet_planes(planes, origin, direction, hit, settings, t_max, surface=False)
 
     No extra march or SDF evaluation of the scene: one plane distance per plane at the
     last sample. Differentiable in the plane, the origin and the direction (through the
-    analytic t; the conditions carry no gradient). With `surface`, also {"met", "normal",
-    "material"}: where a plane was met, its unit normal and material (what
-    `normal_and_material` gives on the plane, where it is the nearest surface)."""
+    analytic t; the conditions carry no gradient)."""
     t, found = hit.t, hit.hit
     limit = jnp.asarray(settings.max_distance if t_max is None else t_max, t.dtype)
     far = PLANE_HORIZON * settings.max_distance
@@ -333,21 +331,17 @@ def _meet_planes(planes, origin, direction, hit, settings, t_max, surface=False)
     last = stop_gradient(origin) + last_t * stop_gradient(direction)
     tol = rounding_floor(last) + GLIDE_RTOL * jnp.abs(last_d)
     met = jnp.zeros_like(found)
-    normal, material = jnp.zeros_like(origin), jnp.zeros((), jnp.int32)
+    meets = []
     for plane in planes:
         n = plane.normal / jnp.sqrt(dot(plane.normal, plane.normal))
         t_p, ok = intersect_plane(origin, direction, n, plane.offset)
-        d_p, m_p = stop_gradient(plane).eval(last)
+        d_p = stop_gradient(plane).distance(last)
         gliding = free & hit.exhausted & (jnp.abs(d_p - last_d) <= tol) & (t_p > last_t)
         meet = (escaped | gliding) & ok & (t_p < far) & ((~met) | (t_p < t))
         t = jnp.where(meet, t_p, t)
-        if surface:
-            normal = jnp.where(meet, normalize(plane.normal), normal)
-            material = jnp.where(meet, m_p, material)
         met = met | meet
-    if not surface:
-        return t, found | met
-    return t, found | met, {"met": met, "normal": normal, "material": material}
+        meets.append(meet)
+    return t, found | met, tuple(meets)
 
 
 def visibility(scene, origin, wi, distance, settings):
