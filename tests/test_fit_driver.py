@@ -14,6 +14,7 @@ import numpy as np
 import optax
 import optimistix as optx
 import pytest
+from conftest import subprocess_env
 
 import jaxrt as jr
 from jaxrt import fit, sdf, views
@@ -381,7 +382,7 @@ SHARDED = textwrap.dedent(
 def test_render_views_shards_the_views_over_devices():
     """Two virtual CPU devices (set before jax starts, so in a subprocess): the views
     are split between them and the images are those of one device."""
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    env = subprocess_env(XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", SHARDED], capture_output=True, text=True, env=env,
                           timeout=300)
     assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr[-3000:]

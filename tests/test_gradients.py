@@ -748,8 +748,13 @@ def test_replay_kernel_by_default_only_for_small_vjp_programs():
     """`replay_kernel = None` runs the replay's VJP in a Pallas kernel when its program is
     at most `replay_kernel_max_lane_ops`, else XLA's reverse pass, with no warning: a
     gradient is the recording Pallas kernel and one for the VJP, or the first alone.
-    Off on "fused"."""
+    Off on "fused". (The replay scene without its mirror, glass and height field, at
+    depth 0, hard shadows: the choice depends on the program's size only, and tracing the whole scene
+    for Pallas three times took 22 s.)"""
     scene, camera, settings = _replay_scene()
+    scene = jr.Scene(scene.surface, [Lambert((0.6, 0.5, 0.4))] * 4, scene.lights,
+                     background=scene.background)
+    settings = settings.replace(max_depth=0, shadows="hard")
     dyn, static = eqx.partition((scene, camera), eqx.is_inexact_array)
 
     def kernels(backend, limit):

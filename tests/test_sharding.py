@@ -10,6 +10,7 @@ import sys
 import textwrap
 
 import pytest
+from conftest import subprocess_env
 
 SCRIPT = textwrap.dedent(
     """
@@ -105,9 +106,8 @@ SCRIPT = textwrap.dedent(
 
 
 def test_sharded_render_is_the_unsharded_render(tmp_path):
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
-    env["JAX_PLATFORMS"] = "cpu"
+    flags = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
+    env = subprocess_env(XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     script = tmp_path / "sharded.py"
     script.write_text(SCRIPT)
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env,
