@@ -173,6 +173,46 @@ def test_prestacked_union_is_the_union():
     np.testing.assert_array_equal(m, m_ref)
 
 
+@pytest.mark.parametrize("backend", ["fused", pytest.param("jax", marks=pytest.mark.slow)])
+def test_a_surface_stacked_ahead_renders_and_differentiates_as_its_unions(backend):
+    """`sdf.stacked` (what a fit of many primitives differentiates): its render and the
+    gradient of a loss of it are the union's, each stacked leaf's gradient the stack of
+    the children's (rotated capsules in one group: their rotations under `vmap` in
+    `with_matrices`); its leaves do not grow with the children; `unstacked` gives the
+    union back, static materials and threshold included."""
+    kids = [S.Translate(S.Rotate(S.Capsule(0.15 + 0.01 * i, 0.12, material=i % 2),
+                                 axis=(0.2 * i, 1.0, 0.3), angle=12.0 * i + 20.0),
+                        offset=(0.45 * i - 1.8, 0.25, 0.1 * i)) for i in range(9)]
+    kids += [S.Translate(S.Sphere(0.2 + 0.02 * i, material=2), offset=(0.5 * i - 1.8, 0.8, 0.3))
+             for i in range(8)]
+    union = S.Union(*kids, S.Plane(normal=(0.0, 1.0, 0.0), offset=-0.1, material=1), stack_threshold=7)
+    ahead = S.stacked(union)
+    assert isinstance(ahead, stack.StackedUnion) and ahead.stacked.count(True) == 2
+    twice = S.stacked(S.Union(*(kids * 2), union.children_[-1], stack_threshold=7))
+    assert len(jax.tree_util.tree_leaves(twice)) == len(jax.tree_util.tree_leaves(ahead))
+    back = S.unstacked(ahead)
+    assert eqx.tree_equal(back, union)
+    materials = [jr.bsdf.Lambert((0.7, 0.4, 0.3)), jr.bsdf.Lambert((0.5, 0.6, 0.7)),
+                 jr.bsdf.Lambert((0.3, 0.7, 0.4))]
+    light = [jr.PointLight((1.0, 4.0, 3.0), (30.0, 30.0, 30.0))]
+    camera = jr.PerspectiveCamera(eye=(0.0, 1.5, 4.0), target=(0.0, 0.3, 0.0), fov=50.0, width=8, height=6)
+    settings = jr.RenderSettings(dtype="float64", backend=backend, batch_size=16, shadows="hard")
+
+    def loss(surface):
+        image = jr.render(jr.Scene(surface, materials, light, background=0.1), camera, settings)
+        return jnp.sum(image.rgb * jnp.linspace(0.5, 1.5, 3))
+
+    value, grad = eqx.filter_value_and_grad(loss)(union)
+    value_ahead, grad_ahead = eqx.filter_value_and_grad(loss)(ahead)
+    np.testing.assert_allclose(value_ahead, value, rtol=1e-12)
+    want = eqx.filter(S.stacked(grad), eqx.is_inexact_array)
+    got = eqx.filter(grad_ahead, eqx.is_inexact_array)
+    leaves = jax.tree_util.tree_leaves(want)
+    assert max(np.abs(x).max() for x in leaves) > 0
+    for a, b in zip(jax.tree_util.tree_leaves(got), leaves, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
 def spheres(n):
     k = int(np.ceil(np.sqrt(n)))
     return S.Union(*[S.Translate(S.Sphere(radius=0.5, material=0), offset=((i % k) * 1.2, 0.5, (i // k) * 1.2))

@@ -11,7 +11,7 @@ max_depth from the config).
     python experiments/bench/compile.py [--config configs/experiments/compile.toml]
         [--scenes showcase,spheres8,...] [--backends jax,fused] [--modes render,grad]
         [--xla default,fast-compile] [--width W --height H] [--repeats N]
-        [--glass-depth D] [--cache] [--eqns-only] [--out out/compile]
+        [--glass-depth D] [--cache] [--stacked] [--eqns-only] [--out out/compile]
 
 For each (scene, backend, mode, xla): `lower_s` (trace + lower to StableHLO),
 `compile_s` (XLA, with the compiler options of the `KernelOptions.xla` preset `xla`,
@@ -57,9 +57,12 @@ def main(argv=None):
     ap.add_argument("--cache", action="store_true", help="use the persistent compilation cache")
     ap.add_argument("--eqns-only", action="store_true",
                     help="trace only: program sizes, no compilation (fast, deterministic)")
+    ap.add_argument("--stacked", action="store_true",
+                    help="every scene's unions stacked ahead (jaxrt.sdf.stacked), as a fit of many primitives takes them")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     cfg = tomllib.loads(Path(args.config).read_text())
+    cfg["stacked"] = args.stacked or cfg.get("stacked", False)
     for key in ("width", "height", "repeats"):
         if getattr(args, key) is not None:
             cfg[key] = getattr(args, key)
@@ -95,7 +98,7 @@ def main(argv=None):
     info = dict(device=jax.devices()[0].device_kind, platform=jax.default_backend(),
                 cpu_cores=os.cpu_count(), jax=jax.__version__, width=cfg["width"],
                 height=cfg["height"], glass_depth=cfg["glass"]["max_depth"],
-                cache=bool(args.cache))
+                cache=bool(args.cache), stacked=cfg["stacked"])
     print(info, flush=True)
     rows = []
     for name in scenes:
@@ -207,6 +210,12 @@ def measure(cfg, name, backend, mode, compile_=True, xla="default"):
     from jaxrt import xla as jaxrt_xla
 
     scene, camera, settings = SCENES[name](cfg)
+    if cfg.get("stacked"):
+        import equinox as eqx
+
+        from jaxrt.sdf import stacked
+
+        scene = eqx.tree_at(lambda s: s.surface, scene, stacked(scene.surface))
     settings = settings.replace(**{**cfg.get("settings", {}), "backend": backend})
     settings = settings.replace(kernel=settings.kernel.replace(xla=xla))
     f, dyn = program(scene, camera, settings, mode)

@@ -56,3 +56,4 @@ from .primitives import (
     sd_sphere as sd_sphere,
     sd_torus as sd_torus,
 )
+from .stack import stacked as stacked, unstacked as unstacked

@@ -141,14 +141,22 @@ class Rotated(_Wrap):
 
 
 def with_matrices(surface):
-    """`surface` with every `Rotate` replaced by its `Rotated` (the same function)."""
+    """`surface` with every `Rotate` replaced by its `Rotated` (the same function); in a
+    union stacked ahead (`stack.stacked`), each group's rotations under `vmap`."""
+    from .stack import StackedUnion
+
     def convert(node):
+        if type(node) is StackedUnion:
+            parts = tuple(jax.vmap(with_matrices)(p) if st else with_matrices(p)
+                          for p, st in zip(node.parts, node.stacked))
+            return eqx.tree_at(lambda u: u.parts, node, parts)
         if type(node) is not Rotate:
             return node
         rotation = axis_angle_matrix(normalize(node.axis), jnp.deg2rad(node.angle))
         return Rotated(with_matrices(node.child), rotation)
 
-    return jax.tree_util.tree_map(convert, surface, is_leaf=lambda x: type(x) is Rotate)
+    return jax.tree_util.tree_map(convert, surface,
+                                  is_leaf=lambda x: type(x) in (Rotate, StackedUnion))
 
 
 class Transform(_Wrap):
