@@ -79,7 +79,8 @@ def _box_like(q, band):
     """
     nearest = jnp.max(q, axis=-1)
     o = jnp.maximum(q, 0.0)
-    return select(nearest > band, jnp.sqrt(jnp.sum(o * o, axis=-1)), nearest)
+    far = nearest > band  # then |o| > 0: the inner select keeps sqrt's derivative finite
+    return select(far, jnp.sqrt(select(far, jnp.sum(o * o, axis=-1), 1.0)), nearest)
 
 
 @_box_like.defjvp
