@@ -76,15 +76,8 @@ def dot(a, b):
 
 @partial(jax.custom_jvp, nondiff_argnums=(1,))
 def _guarded_sqrt(x, tiny):
-    """sqrt(x) where x > tiny, else 0; its derivative 1/(2 sqrt x) where x > tiny, else 0.
-
-    The value is written with the double-`where` guard too, so that its plain chain rule
-    is the custom JVP's: JAX drops a custom JVP rule that partial evaluation meets with
-    unknown inputs (`JaxprTrace.process_custom_jvp_call`, as a scan's second derivative
-    does) and differentiates the value instead, where sqrt(max(x, 0)) gave ∞ · 0 = NaN
-    at 0 (a stacked union of boxes, `tests/test_union_stack.py`)."""
-    ok = x > tiny
-    return select(ok, jnp.sqrt(select(ok, x, 1.0)), 0.0)
+    """sqrt(max(x, 0)); its derivative 1/(2 sqrt x) where x > tiny, else 0."""
+    return jnp.sqrt(jnp.maximum(x, 0.0))
 
 
 def _inverse_where(ok, y):

@@ -216,9 +216,9 @@ def test_a_surface_stacked_ahead_renders_and_differentiates_as_its_unions(backen
 def test_normals_of_a_stacked_group_of_boxes_have_finite_gradients():
     """The gradient of a loss of the normals (a second derivative: what a shaded
     render's gradient holds) through a stacked group of boxes is the loop union's, and
-    finite at points inside one box: the scan's second derivative differentiates
-    `_box_like`'s and `_guarded_sqrt`'s values (JAX drops their custom JVP rules there),
-    whose sqrt at 0 gave ∞ · 0 = NaN before their double-`where` guards."""
+    finite at points inside one box: the scan's second derivative differentiates the
+    value of `_box_like` and of its rule (JAX drops a custom JVP rule there), whose
+    sqrt at 0 gave ∞ · 0 = NaN before their norms' arguments were guarded."""
     kids = [S.Translate(S.Box((0.25, 0.15, 0.2)), offset=(0.5 * i - 1.0, 0.2, 0.1)) for i in range(2)]
     p = jnp.asarray(np.random.default_rng(0).uniform((-1.35, 0.0, -0.15), (-0.15, 0.4, 0.35), (400, 3)))
 

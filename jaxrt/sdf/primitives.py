@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ..vecmath import TINY, _guarded_sqrt, _inverse_where, clip, dot, minimum, safe_div, safe_norm, select
+from ..vecmath import _guarded_sqrt, clip, dot, minimum, safe_div, safe_norm, select
 from .base import Primitive, as_float, check, material_index, non_negative, positive
 
 # The code of these functions is inlined at every march site of a render, once per
@@ -69,13 +69,19 @@ def _box_like(q, band):
     one side of the switch. (max(max q, 0) > band ⟺ max q > band, as band > 0.)
 
     Derivative (a custom JVP, so that one evaluation's gradient is a handful of
-    equations): d|o| = (o · dq)/|o| with o = max(q, 0) (zero where |o|² ≤ TINY; the
-    components with q_i ≤ 0 have o_i = 0, so the derivative of max(·, 0) is not
+    equations): d|o| = (o · dq)/|o| with o = max(q, 0) (taken where max q > band, so
+    |o| ≥ band > 0; the components with q_i ≤ 0 have o_i = 0, so the derivative of max(·, 0) is not
     needed), and d(max q) = dq_i of the first maximal component, found by the chain of
     comparisons q_i > max(q_0..q_{i−1}) (the gradient of `jnp.max` selects the
     components *equal* to the maximum, and where XLA computes q twice with different
     roundings — it does, in some gradient programs — none is equal and the normal comes
     out as 0; q[argmax q] costs a chain of integer compares in the fused lane kernels).
+
+    The norm's argument is 1 where it is not taken (value and rule), so that its plain
+    chain rule is finite too: JAX drops a custom JVP rule that partial evaluation meets
+    with unknown inputs (`JaxprTrace.process_custom_jvp_call`, as a scan's second
+    derivative does) and differentiates the value instead, where sqrt'(0) times the
+    select's zero cotangent gave NaN inside a box (`tests/test_union_stack.py`).
     """
     nearest = jnp.max(q, axis=-1)
     o = jnp.maximum(q, 0.0)
@@ -88,10 +94,9 @@ def _box_like_jvp(primals, tangents):
     (q, band), (tq, _) = primals, tangents
     nearest = jnp.max(q, axis=-1)
     o = jnp.maximum(q, 0.0)
-    sq = jnp.sum(o * o, axis=-1)
-    n = _guarded_sqrt(sq, TINY)
-    far = nearest > band
-    t_far = jnp.sum(o * tq, axis=-1) * _inverse_where(sq > TINY, n)
+    far = nearest > band  # then |o|² ≥ band² > TINY
+    n = jnp.sqrt(select(far, jnp.sum(o * o, axis=-1), 1.0))
+    t_far = jnp.sum(o * tq, axis=-1) / n
     comps = _split_last(tq)
     t_near = comps[0]
     for c, ti in zip(_first_max(q), comps[1:]):
