@@ -123,6 +123,7 @@ def subprocess_env(**changes):
     env.update(changes)
     return env
 
+
 #: The test files that take longest (seconds of one worker, 2 quiet cores, session 30),
 #: collected first: xdist's `--dist loadfile` hands files to its workers in collection
 #: order, and a long file dealt last leaves the other worker idle at the end (the

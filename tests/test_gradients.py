@@ -749,8 +749,8 @@ def test_replay_kernel_by_default_only_for_small_vjp_programs():
     at most `replay_kernel_max_lane_ops`, else XLA's reverse pass, with no warning: a
     gradient is the recording Pallas kernel and one for the VJP, or the first alone.
     Off on "fused". (The replay scene without its mirror, glass and height field, at
-    depth 0, hard shadows: the choice depends on the program's size only, and tracing the whole scene
-    for Pallas three times took 22 s.)"""
+    depth 0 with hard shadows: the choice depends on the program's size only, and
+    tracing the whole scene for Pallas three times took 22 s.)"""
     scene, camera, settings = _replay_scene()
     scene = jr.Scene(scene.surface, [Lambert((0.6, 0.5, 0.4))] * 4, scene.lights,
                      background=scene.background)

@@ -70,8 +70,8 @@ def _box_like(q, band):
 
     Derivative (a custom JVP, so that one evaluation's gradient is a handful of
     equations): d|o| = (o · dq)/|o| with o = max(q, 0) (taken where max q > band, so
-    |o| ≥ band > 0; the components with q_i ≤ 0 have o_i = 0, so the derivative of max(·, 0) is not
-    needed), and d(max q) = dq_i of the first maximal component, found by the chain of
+    |o| ≥ band > 0; the components with q_i ≤ 0 have o_i = 0, so the derivative of
+    max(·, 0) is not needed), and d(max q) = dq_i of the first maximal component, found by the chain of
     comparisons q_i > max(q_0..q_{i−1}) (the gradient of `jnp.max` selects the
     components *equal* to the maximum, and where XLA computes q twice with different
     roundings — it does, in some gradient programs — none is equal and the normal comes
@@ -94,7 +94,7 @@ def _box_like_jvp(primals, tangents):
     (q, band), (tq, _) = primals, tangents
     nearest = jnp.max(q, axis=-1)
     o = jnp.maximum(q, 0.0)
-    far = nearest > band  # then |o|² ≥ band² > TINY
+    far = nearest > band  # then |o| ≥ max q > band > 0
     n = jnp.sqrt(select(far, jnp.sum(o * o, axis=-1), 1.0))
     t_far = jnp.sum(o * tq, axis=-1) / n
     comps = _split_last(tq)

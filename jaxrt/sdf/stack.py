@@ -395,6 +395,7 @@ def stacked(surface):
 
 
 def _stack_unions(surface, balls):
+    """`prestack` without the matrices (`stacked` with `balls` False)."""
     from .combine import Union
     from .primitives import Plane
 
