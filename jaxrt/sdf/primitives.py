@@ -96,7 +96,7 @@ def _box_like_jvp(primals, tangents):
     o = jnp.maximum(q, 0.0)
     far = nearest > band  # then |o| ≥ max q > band > 0
     n = jnp.sqrt(select(far, jnp.sum(o * o, axis=-1), 1.0))
-    t_far = jnp.sum(o * tq, axis=-1) / n
+    t_far = jnp.sum(o * tq, axis=-1) * (1.0 / n)  # as before the guard: the same roundings
     comps = _split_last(tq)
     t_near = comps[0]
     for c, ti in zip(_first_max(q), comps[1:]):
