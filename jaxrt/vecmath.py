@@ -80,6 +80,23 @@ def _guarded_sqrt(x, tiny):
     return jnp.sqrt(jnp.maximum(x, 0.0))
 
 
+def _sqrt_where(x, otherwise):
+    """sqrt(x) where x > 0, else `otherwise`, in plain operations whose chain rule is
+    finite everywhere (0 where x ≤ 0): sqrt's argument is floored at the dtype's
+    smallest normal number ε, so x < ε (subnormal) gives sqrt ε (1.1e-19 in float32,
+    1.5e-154 in float64).
+
+    The custom JVPs' rules take their square roots from it: JAX drops a custom JVP rule
+    that partial evaluation meets with unknown inputs (`JaxprTrace.process_custom_jvp_call`)
+    and differentiates the function's value instead, and a scan's second derivative (the
+    gradient of normals through a stacked group) meets there the custom JVPs that its
+    first derivative's rules call. A `_guarded_sqrt` in `safe_norm`'s rule gave
+    sqrt'(0) = ∞ times a zero tangent, NaN, at a sphere's centre
+    (`tests/test_union_stack.py`)."""
+    x = jnp.asarray(x)
+    return select(x > 0.0, jnp.sqrt(jnp.maximum(x, jnp.finfo(x.dtype).tiny)), otherwise)
+
+
 def _inverse_where(ok, y):
     """1/y where `ok`, else 0, with the double-`where` guard (finite derivatives of every
     order where not `ok`)."""
@@ -91,7 +108,7 @@ def _guarded_sqrt_jvp(tiny, primals, tangents):
     # d sqrt(x) = tx / (2 sqrt x); the tangent is one product with a primal-only
     # factor, so its transpose is one product too.
     (x,), (tx,) = primals, tangents
-    y = _guarded_sqrt(x, tiny)
+    y = _sqrt_where(x, 0.0)
     return y, tx * (0.5 * _inverse_where(x > tiny, y))
 
 
@@ -117,7 +134,7 @@ def safe_norm(x, axis=-1):
 def _safe_norm_jvp(axis, primals, tangents):
     (x,), (tx,) = primals, tangents
     sq = jnp.sum(x * x, axis=axis)
-    n = _guarded_sqrt(sq, TINY)
+    n = _sqrt_where(sq, sq)  # sq = 0 where not > 0
     return n, jnp.sum(x * tx, axis=axis) * _inverse_where(sq > TINY, n)
 
 

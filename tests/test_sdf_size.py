@@ -25,7 +25,9 @@ _spec.loader.exec_module(sdf_eqns)
 # the compact forms were Box 99, Cone 252, Cylinder 127, Rotate(Sphere) 115, Twist 83,
 # SmoothUnion 109, showcase surface 2489; after: 57, 147, 78, 47, 49, 75, 1485; the
 # cone's face distances at the surface, session 31: Cone 174, showcase surface 1564; the
-# smooth blends' max(·, 0) by comparison, session 32: showcase surface 1578). A
+# smooth blends' max(·, 0) by comparison, session 32: showcase surface 1578; the
+# rules' square roots guarded for a scan's second derivative, session 39: Sphere
+# 15 → 16, showcase surface 1543 → 1564). A
 # budget a little above today's count: a change that adds equations to every evaluation
 # of a scene shows here.
 BUDGET = {

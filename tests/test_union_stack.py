@@ -240,6 +240,43 @@ def test_normals_of_a_stacked_group_of_boxes_have_finite_gradients():
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
 
 
+def test_normals_through_stacked_groups_have_finite_gradients_at_centres_and_axes():
+    """The same loss of normals through stacked groups of the round primitives, at the
+    points where their norms vanish (centres, points on their axes, a torus's core
+    circle) and around them: finite, and the loop union's gradient. `safe_norm`'s rule
+    took |x| from `_guarded_sqrt`, a custom JVP whose rule the scan's second derivative
+    drops: the chain rule of its value, sqrt'(0) = ∞ times a zero tangent, was NaN
+    (`vecmath._sqrt_where`)."""
+    kinds = {  # a shape, and points in its frame where a norm vanishes
+        "sphere": (S.Sphere(0.3), [(0.0, 0.0, 0.0)]),
+        "torus": (S.Torus(0.3, 0.1), [(0.0, 0.0, 0.0), (0.3, 0.0, 0.0), (0.0, 0.05, 0.0)]),
+        "cone": (S.Cone(0.3, 0.4), [(0.0, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, -0.1, 0.0)]),
+        "capsule": (S.Capsule(0.2, 0.1), [(0.0, 0.0, 0.0), (0.0, -0.3, 0.0)]),
+        "cylinder": (S.Cylinder(0.2, 0.3), [(0.0, 0.0, 0.0), (0.0, 0.1, 0.0)]),
+        "ellipsoid": (S.Ellipsoid((0.3, 0.2, 0.25)), [(0.0, 0.0, 0.0)]),
+    }
+    kids, points = [], []
+    for k, (shape, special) in enumerate(kinds.values()):
+        for offset in ((2.0 * k, 0.0, 0.0), (2.0 * k, 0.0, 1.5)):
+            kids.append(S.Translate(shape, offset=offset))
+            points += [np.add(offset, q) for q in special]
+    points += list(np.random.default_rng(1).uniform((-0.5, -0.5, -0.5), (10.5, 0.5, 2.0), (40, 3)))
+    p = jnp.asarray(np.array(points))
+
+    def gradient(threshold):
+        def loss(union):
+            surface = stack.prestack(union)
+            normals = jax.vmap(jax.grad(lambda q: surface.eval(q)[0]))(p)
+            return jnp.sum(normals * jnp.array([0.3, 0.5, 0.7]))
+
+        return eqx.filter_jit(eqx.filter_grad(loss))(S.Union(*kids, stack_threshold=threshold))
+
+    stacked, loop = (jax.tree_util.tree_leaves(gradient(t)) for t in (2, LOOP))
+    assert all(np.all(np.isfinite(x)) for x in stacked)
+    for a, b in zip(stacked, loop, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+
+
 def spheres(n):
     k = int(np.ceil(np.sqrt(n)))
     return S.Union(*[S.Translate(S.Sphere(radius=0.5, material=0), offset=((i % k) * 1.2, 0.5, (i // k) * 1.2))
