@@ -221,7 +221,15 @@ def test_normals_of_a_stacked_group_of_boxes_have_finite_gradients():
     sqrt at 0 gave ∞ · 0 = NaN before their norms' arguments were guarded."""
     kids = [S.Translate(S.Box((0.25, 0.15, 0.2)), offset=(0.5 * i - 1.0, 0.2, 0.1)) for i in range(2)]
     p = jnp.asarray(np.random.default_rng(0).uniform((-1.35, 0.0, -0.15), (-0.15, 0.4, 0.35), (400, 3)))
+    inside = jax.vmap(lambda q: S.Union(*kids).eval(q)[0])(p) < 0
+    assert 20 < int(inside.sum()) < 380
+    _assert_normal_loss_gradients_finite_and_equal(kids, p)
 
+
+def _assert_normal_loss_gradients_finite_and_equal(kids, p):
+    """The gradient, with respect to the children, of a loss of the normals ∇f at
+    points `p` (a second derivative) through the union of `kids` stacked (groups of 2
+    and more) is finite, not all zero, and the loop union's to 1e-12."""
     def gradient(threshold):
         def loss(union):
             surface = stack.prestack(union)
@@ -230,18 +238,15 @@ def test_normals_of_a_stacked_group_of_boxes_have_finite_gradients():
 
         return eqx.filter_jit(eqx.filter_grad(loss))(S.Union(*kids, stack_threshold=threshold))
 
-    inside = jax.vmap(lambda q: S.Union(*kids).eval(q)[0])(p) < 0
-    assert 20 < int(inside.sum()) < 380
-    stacked, loop = gradient(2), gradient(LOOP)
-    leaves = jax.tree_util.tree_leaves(stacked)
-    assert all(np.all(np.isfinite(x)) for x in leaves)
-    assert max(np.abs(x).max() for x in leaves) > 0
-    for a, b in zip(leaves, jax.tree_util.tree_leaves(loop), strict=True):
+    stacked, loop = (jax.tree_util.tree_leaves(gradient(t)) for t in (2, LOOP))
+    assert all(np.all(np.isfinite(x)) for x in stacked)
+    assert max(np.abs(x).max() for x in stacked) > 0
+    for a, b in zip(stacked, loop, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
 
 
 def test_normals_through_stacked_groups_have_finite_gradients_at_centres_and_axes():
-    """The same loss of normals through stacked groups of the round primitives, at the
+    """A loss of normals through stacked groups of the round primitives, at the
     points where their norms vanish (centres, points on their axes, a torus's core
     circle) and around them: finite, and the loop union's gradient. `safe_norm`'s rule
     took |x| from `_guarded_sqrt`, a custom JVP whose rule the scan's second derivative
@@ -261,20 +266,7 @@ def test_normals_through_stacked_groups_have_finite_gradients_at_centres_and_axe
             kids.append(S.Translate(shape, offset=offset))
             points += [np.add(offset, q) for q in special]
     points += list(np.random.default_rng(1).uniform((-0.5, -0.5, -0.5), (10.5, 0.5, 2.0), (40, 3)))
-    p = jnp.asarray(np.array(points))
-
-    def gradient(threshold):
-        def loss(union):
-            surface = stack.prestack(union)
-            normals = jax.vmap(jax.grad(lambda q: surface.eval(q)[0]))(p)
-            return jnp.sum(normals * jnp.array([0.3, 0.5, 0.7]))
-
-        return eqx.filter_jit(eqx.filter_grad(loss))(S.Union(*kids, stack_threshold=threshold))
-
-    stacked, loop = (jax.tree_util.tree_leaves(gradient(t)) for t in (2, LOOP))
-    assert all(np.all(np.isfinite(x)) for x in stacked)
-    for a, b in zip(stacked, loop, strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    _assert_normal_loss_gradients_finite_and_equal(kids, jnp.asarray(np.array(points)))
 
 
 def spheres(n):
