@@ -27,17 +27,18 @@ _spec.loader.exec_module(sdf_eqns)
 # cone's face distances at the surface, session 31: Cone 174, showcase surface 1564; the
 # smooth blends' max(·, 0) by comparison, session 32: showcase surface 1578; the
 # rules' square roots guarded for a scan's second derivative, session 39: Sphere
-# 15 → 16, showcase surface 1543 → 1564). A
+# 15 → 18, showcase surface 1543 → 1603, outside the forward lane kernels:
+# `vecmath.undifferentiated`). A
 # budget a little above today's count: a change that adds equations to every evaluation
 # of a scene shows here.
 BUDGET = {
-    "Sphere": 16, "Plane": 13, "Box": 60, "RoundBox": 62, "Torus": 42, "Cone": 180,
-    "Capsule": 34, "Cylinder": 82, "Ellipsoid": 75, "Translate(Sphere)": 18,
-    "Rotate(Sphere)": 50, "Transform(Sphere)": 22, "Scale(Sphere)": 33,
-    "Repeat(Sphere)": 48, "Twist(Sphere)": 52, "Bend(Sphere)": 52,
-    "Displace(Sphere)": 38, "Union(Sphere,Sphere)": 44, "Intersection(Sphere,Box)": 88,
-    "Subtraction(Sphere,Sphere)": 50, "SmoothUnion(Sphere,Sphere)": 79,
-    "showcase surface": 1585,
+    "Sphere": 19, "Plane": 13, "Box": 60, "RoundBox": 62, "Torus": 48, "Cone": 186,
+    "Capsule": 37, "Cylinder": 85, "Ellipsoid": 81, "Translate(Sphere)": 21,
+    "Rotate(Sphere)": 53, "Transform(Sphere)": 25, "Scale(Sphere)": 36,
+    "Repeat(Sphere)": 51, "Twist(Sphere)": 55, "Bend(Sphere)": 55,
+    "Displace(Sphere)": 41, "Union(Sphere,Sphere)": 50, "Intersection(Sphere,Box)": 91,
+    "Subtraction(Sphere,Sphere)": 56, "SmoothUnion(Sphere,Sphere)": 85,
+    "showcase surface": 1645,
 }
 
 
@@ -226,3 +227,25 @@ def test_safe_norm_and_select_match_jnp():
     c = jnp.array([True, False, True])
     np.testing.assert_array_equal(vecmath.select(c, x, 0.0), jnp.where(c, x, 0.0))
     assert vecmath.select(c, 1, jnp.arange(3)).dtype == jnp.arange(3).dtype
+
+
+def test_undifferentiated_rules_give_the_same_values_in_fewer_equations():
+    """`vecmath.undifferentiated` (the forward lane kernels) drops the guard of the
+    rules' square roots (`_sqrt_where`): the same values and first derivatives, in a
+    smaller program, and no trace of one kind serves the other."""
+    x = jnp.array([[0.0, 0.0, 0.0], [1e-20, 0.0, 0.0], [3.0, -4.0, 12.0], [-1e-3, 2e-3, 0.5]])
+    s = jnp.array([-1.0, 0.0, 1e-300, 0.25])
+
+    def run():  # new functions each time: make_jaxpr keeps traces by function
+        f = jax.vmap(jax.value_and_grad(lambda v: vecmath.safe_norm(v)))
+        g = jax.vmap(jax.value_and_grad(lambda t: vecmath.safe_sqrt(t) * 2.0))
+        return (f(x), g(s)), sdf_eqns.count(jax.make_jaxpr(jax.vmap(jax.value_and_grad(
+            lambda v: vecmath.safe_norm(v))))(x).jaxpr)
+
+    guarded, size = run()
+    with vecmath.undifferentiated():
+        plain, plain_size = run()
+    for a, b in zip(jax.tree_util.tree_leaves(guarded), jax.tree_util.tree_leaves(plain), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert plain_size < size
+    assert run()[1] == size  # a differentiated trace after a forward one is guarded again

@@ -19,6 +19,7 @@ the kernel instead and differentiates a loop-free replay (`render._recorded`), s
 VJP is not used there.
 """
 
+import contextlib
 import functools
 import math
 import warnings
@@ -31,6 +32,7 @@ from jax import lax
 
 from ..march import form as march_form
 from ..march import tape
+from ..vecmath import undifferentiated
 from .lanes import (Tables, Uniforms, Unsupported, eval_lanes, lanes_of, program_size,
                     stack_lanes)
 
@@ -94,7 +96,9 @@ def map_samples(fn, params, samples, settings, reference, grid=None, centres=Non
         # kernel twice (abstractly, then in the caller's trace); the showcase's program
         # takes seconds to trace
         if not program:
-            program.append(_trace_one(one, dyn, samples.dtype, settings, backend, extra))
+            # a kernel under `custom_vjp` is never differentiated; a gradient's own is
+            with contextlib.nullcontext() if summed else undifferentiated():
+                program.append(_trace_one(one, dyn, samples.dtype, settings, backend, extra))
         return program[0]
 
     def lanes(dyn_, samples_, *extra_):
