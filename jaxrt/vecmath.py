@@ -76,6 +76,12 @@ def dot(a, b):
     return jnp.sum(a * b, axis=-1)
 
 
+@partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _guarded_sqrt(x, tiny):
+    """sqrt(max(x, 0)); its derivative 1/(2 sqrt x) where x > tiny, else 0."""
+    return jnp.sqrt(jnp.maximum(x, 0.0))
+
+
 _STATE = threading.local()
 
 
@@ -85,22 +91,13 @@ def undifferentiated():
     kernels: `kernels.fused.map_samples`), so the rules of `safe_norm` and `safe_sqrt`
     take their square roots unguarded (`_sqrt_where`). The guard made the showcase's
     "fused" render compile 20 % longer (XLA 27.6–29.0 s against 21.6–23.8 s, 32×24,
-    session 39).
-
-    The two kinds of rule are distinct custom JVPs, picked where the function is
-    called: JAX keeps the trace of a custom JVP's rule, so one function whose rule read
-    this context would serve a differentiated program the rule traced for a forward one.
-    """
+    session 39)."""
     previous = getattr(_STATE, "undifferentiated", False)
     _STATE.undifferentiated = True
     try:
         yield
     finally:
         _STATE.undifferentiated = previous
-
-
-def _guarded():
-    return not getattr(_STATE, "undifferentiated", False)
 
 
 def _sqrt_where(x):
@@ -113,7 +110,10 @@ def _sqrt_where(x):
     gradient of normals through a stacked group) meets there the custom JVPs that its
     first derivative's rules call. A `_guarded_sqrt` in `safe_norm`'s rule gave
     sqrt'(0) = ∞ times a zero tangent, NaN, at a sphere's centre
-    (`tests/test_union_stack.py`)."""
+    (`tests/test_union_stack.py`). Under `undifferentiated`: `_guarded_sqrt`, the same
+    values in fewer operations."""
+    if getattr(_STATE, "undifferentiated", False):
+        return _guarded_sqrt(x, 0.0)
     ok = x > 0.0
     return select(ok, jnp.sqrt(select(ok, x, 1.0)), 0.0)
 
@@ -124,50 +124,13 @@ def _inverse_where(ok, y):
     return select(ok, 1.0 / select(ok, y, 1.0), 0.0)
 
 
-def _custom_sqrt(guarded):
-    """sqrt(max(x, 0)) as a custom JVP whose derivative is 1/(2 sqrt x) where x > tiny,
-    else 0; its rule takes the root from `_sqrt_where` if `guarded`, else from itself."""
-
-    @partial(jax.custom_jvp, nondiff_argnums=(1,))
-    def sqrt(x, tiny):
-        return jnp.sqrt(jnp.maximum(x, 0.0))
-
-    @sqrt.defjvp
-    def sqrt_jvp(tiny, primals, tangents):
-        # d sqrt(x) = tx / (2 sqrt x); the tangent is one product with a primal-only
-        # factor, so its transpose is one product too.
-        (x,), (tx,) = primals, tangents
-        y = _sqrt_where(x) if guarded else sqrt(x, tiny)
-        return y, tx * (0.5 * _inverse_where(x > tiny, y))
-
-    return sqrt
-
-
-def _custom_norm(guarded, sqrt):
-    """`safe_norm` as a custom JVP; its rule takes |x| from `_sqrt_where` if `guarded`,
-    else from `sqrt` (`_custom_sqrt(False)`)."""
-
-    @partial(jax.custom_jvp, nondiff_argnums=(1,))
-    def norm(x, axis=-1):
-        return jnp.sqrt(jnp.sum(x * x, axis=axis))
-
-    @norm.defjvp
-    def norm_jvp(axis, primals, tangents):
-        (x,), (tx,) = primals, tangents
-        sq = jnp.sum(x * x, axis=axis)
-        n = _sqrt_where(sq) if guarded else sqrt(sq, TINY)
-        return n, jnp.sum(x * tx, axis=axis) * _inverse_where(sq > TINY, n)
-
-    return norm
-
-
-_SQRT = {guarded: _custom_sqrt(guarded) for guarded in (True, False)}
-_NORM = {guarded: _custom_norm(guarded, _SQRT[guarded]) for guarded in (True, False)}
-
-
-def _guarded_sqrt(x, tiny):
-    """sqrt(max(x, 0)); its derivative 1/(2 sqrt x) where x > tiny, else 0."""
-    return _SQRT[_guarded()](x, tiny)
+@_guarded_sqrt.defjvp
+def _guarded_sqrt_jvp(tiny, primals, tangents):
+    # d sqrt(x) = tx / (2 sqrt x); the tangent is one product with a primal-only
+    # factor, so its transpose is one product too.
+    (x,), (tx,) = primals, tangents
+    y = _sqrt_where(x)
+    return y, tx * (0.5 * _inverse_where(x > tiny, y))
 
 
 def safe_sqrt(x):
@@ -175,6 +138,7 @@ def safe_sqrt(x):
     return _guarded_sqrt(x, 0.0)
 
 
+@partial(jax.custom_jvp, nondiff_argnums=(1,))
 def safe_norm(x, axis=-1):
     """Euclidean norm with a zero (not NaN) gradient at the zero vector (|x|² ≤ TINY).
 
@@ -184,7 +148,15 @@ def safe_norm(x, axis=-1):
     the primal-only factor 1/|x|. The derivative of that factor uses the guarded square
     root, so second derivatives (gradients of normals) are finite at 0 too.
     """
-    return _NORM[_guarded()](x, axis)
+    return jnp.sqrt(jnp.sum(x * x, axis=axis))
+
+
+@safe_norm.defjvp
+def _safe_norm_jvp(axis, primals, tangents):
+    (x,), (tx,) = primals, tangents
+    sq = jnp.sum(x * x, axis=axis)
+    n = _sqrt_where(sq)
+    return n, jnp.sum(x * tx, axis=axis) * _inverse_where(sq > TINY, n)
 
 
 def normalize(x, fallback=None):
