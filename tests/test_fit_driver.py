@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,6 +16,7 @@ import optax
 import optimistix as optx
 import pytest
 from conftest import subprocess_env
+from jax.flatten_util import ravel_pytree
 
 import jaxrt as jr
 from jaxrt import fit, sdf, views
@@ -324,6 +326,40 @@ def test_render_views_is_the_per_camera_render_and_differentiable():
     g_all = jax.grad(loss_all)(0.6)
     g_each = sum(grad_one(0.6, views.view(cameras, i)) for i in range(3))
     assert float(g_all) != 0.0 and float(g_all) == pytest.approx(float(g_each), rel=1e-9)
+
+
+def test_render_views_differentiates_a_mirror_as_the_sum_of_its_views():
+    """A mirror: the replay shades the reflected rays in gathered batches behind a
+    `lax.cond` whose predicate the vmap over views batches, and JAX's batching rule then
+    puts `stop_gradient` (no transpose of its own) on the cond's tangents (JAX issues
+    #22011, #39219). The reverse pass runs, and its gradient is the sum of each view's
+    (float64, "fused"). jaxrt gives `stop_gradient` its transpose itself: in a process
+    that has not imported lineax (which registers one too, and this file imports it)."""
+    scene = _scene()
+    scene = jr.Scene(scene.surface, [jr.bsdf.Mirror((0.9, 0.8, 0.7)), scene.materials[1]],
+                     scene.lights, background=scene.background)
+    settings = jr.RenderSettings(dtype="float64", backend="fused", shadows="none", max_depth=1)
+    cameras = views.orbit(2, target=(0.0, 0.5, 0.0), distance=4.0, width=8, height=6)
+    dyn, static = eqx.partition(scene, eqx.is_inexact_array)
+
+    def loss_all(d):
+        return jnp.sum(views.render_views(eqx.combine(d, static), cameras, settings).rgb)
+
+    grad_one = jax.jit(jax.grad(lambda d, camera: jnp.sum(
+        jr.render(eqx.combine(d, static), camera, settings).rgb)))
+    g_all = ravel_pytree(jax.grad(loss_all)(dyn))[0]
+    g_each = sum(ravel_pytree(grad_one(dyn, views.view(cameras, i)))[0] for i in range(2))
+    assert float(jnp.max(jnp.abs(g_each))) > 0
+    np.testing.assert_allclose(np.asarray(g_all), np.asarray(g_each), rtol=1e-9, atol=1e-12)
+
+    check = ("import sys, jaxrt\n"
+             "from jax._src.ad_util import stop_gradient_p\n"
+             "from jax._src.interpreters import ad\n"
+             "assert 'lineax' not in sys.modules\n"
+             "assert stop_gradient_p in ad.primitive_transposes\n")
+    run = subprocess.run([sys.executable, "-c", check], env=subprocess_env(JAX_PLATFORMS="cpu"),
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
 
 
 def test_stack_cameras_needs_one_type_and_resolution():

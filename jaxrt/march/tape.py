@@ -34,6 +34,31 @@ import jax.numpy as jnp
 _STATE = threading.local()
 
 
+def _transpose_stop_gradient():
+    """Give JAX's `stop_gradient` the transpose of the identity, unless it has a rule
+    already (lineax, which optimistix imports, registers this one too).
+
+    A replay's `_gathered` skips its dead batches with a `lax.cond` inside the render's
+    custom JVP rule. Under a `vmap` over views (`views.render_views`, or a user's) the
+    cond's predicate is batched, and JAX's batching rule turns the cond into selects
+    whose operands, tangents included, it wraps in `stop_gradient`, a primitive with
+    no transpose: the reverse pass of a multi-view render of any scene with a mirror or
+    glass failed ("Transpose rule ... for 'stop_gradient' not implemented"; JAX issues
+    #22011 and #39219). There `stop_gradient` stands on the operands of the branch that
+    the outputs' select drops, whose cotangent is zero, so the identity is its
+    transpose. Elsewhere a `stop_gradient` never reaches a linear program (its JVP has
+    a zero tangent)."""
+    try:
+        from jax._src.ad_util import stop_gradient_p
+        from jax._src.interpreters import ad
+    except ImportError:  # another JAX: leave it be
+        return
+    ad.primitive_transposes.setdefault(stop_gradient_p, lambda ct, x: (ct,))
+
+
+_transpose_stop_gradient()
+
+
 class Tape:
     """The entries of one trace of the per-sample program (`mode` "record" or "replay")."""
 
