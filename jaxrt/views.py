@@ -31,7 +31,7 @@ from jax.sharding import Mesh, PartitionSpec as P
 
 from . import xla
 from .camera import PerspectiveCamera, _Camera
-from .render import render
+from .render import derivative_by_replay, differentiable, render
 from .settings import RenderSettings
 
 __all__ = ["stack_cameras", "orbit", "render_views", "num_views", "view"]
@@ -109,6 +109,8 @@ def render_views(scene, cameras, settings=None, *, devices=None):
         raise ValueError("`render_views(cameras=...)` needs cameras stacked along a view axis "
                          "(eye [V, 3]); use jaxrt.views.stack_cameras or jaxrt.views.orbit")
     mesh = None if devices is None else _view_mesh(devices, num_views(cameras))
+    if xla.tracing() and derivative_by_replay(settings, (scene, cameras)):
+        return differentiable(_render_views, (scene, cameras), settings, mesh)
     return xla.jitted(_render_views, settings)(scene, cameras, settings, mesh)
 
 
