@@ -208,9 +208,11 @@ def test_fused_backends_match_jax(small_scene, backend):
 def test_auto_traces_the_one_sample_program_once_per_kernel(small_scene, monkeypatch):
     """"auto" checks the lane program's size and builds its kernel abstractly before the
     real one: the one-sample program (seconds to trace for a large scene) is traced once
-    for all three. A gradient traces two kernels: the plain render (the primal of
-    `render._recorded`'s custom JVP, traced because `render` is a jit) and the record;
-    on Pallas (a GPU) a third, the replay's VJP (`KernelOptions.replay_kernel`)."""
+    for all three. A gradient traces one kernel, the record: `render.differentiable`
+    keeps the plain render (the primal of `render._recorded`'s custom JVP) out of a
+    derivative's trace. On Pallas (a GPU), where the replay's VJP is a kernel too
+    (`KernelOptions.replay_kernel`, a custom VJP), three: that one, the record and the
+    plain render, which the jit of `render` traces first."""
     import jaxrt.kernels.fused as fused
 
     scene, camera, settings = small_scene
@@ -227,7 +229,7 @@ def test_auto_traces_the_one_sample_program_once_per_kernel(small_scene, monkeyp
     calls.clear()
     jax.jit(jax.grad(loss), static_argnums=1).lower(scene, 38)
     backend = resolve_backend("auto")
-    assert calls == [backend] * (3 if backend == "pallas" else 2)
+    assert calls == [backend] * (3 if backend == "pallas" else 1)
 
 
 def test_fused_ray_tree_scan_skips_dead_slots_per_tile(small_scene):
