@@ -82,10 +82,11 @@ def source_digest():
     return digest.hexdigest()
 
 
-def program_key(scene, camera, settings):
+def program_key(scene, camera, settings, rows=None):
     """A key of everything a render program depends on but its float values: the
     structure of scene and camera (their tree, with every static field, and each leaf's
-    shape and dtype), the settings, jaxrt's version and source (`source_digest`), JAX's
+    shape and dtype), the settings, the rows of a block (`render.block_rows`: they
+    follow the machine's cores too), jaxrt's version and source (`source_digest`), JAX's
     version and the default backend."""
     import hashlib
 
@@ -95,7 +96,7 @@ def program_key(scene, camera, settings):
 
     leaves, treedef = jax.tree_util.tree_flatten((scene, camera))
     shapes = [(getattr(x, "shape", None), str(getattr(x, "dtype", type(x)))) for x in leaves]
-    text = repr((str(treedef), shapes, repr(settings), __version__, source_digest(),
+    text = repr((str(treedef), shapes, repr(settings), rows, __version__, source_digest(),
                  jax.__version__, jax.default_backend()))
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
@@ -106,8 +107,9 @@ def compile_render_cached(scene, camera, settings, folder=None):
     `folder/programs/<program_key>.bin`; a later call for a scene of the same structure
     reads it back and skips tracing, and with the compilation cache on, XLA's compile
     too. XLA compiles it with the options of `settings.kernel.xla` (`jaxrt.xla`; the
-    settings are part of the key, the options part of XLA's cache key). Returns
-    `(f(scene, camera) -> Image, reused)`.
+    settings are part of the key, the options part of XLA's cache key). On a CPU the
+    program is that of a block of rows, called by several threads (`render.in_blocks`).
+    Returns `(f(scene, camera) -> Image, reused)`.
 
     Anything the export cannot hold (a Pallas kernel on some backends, a pytree it cannot
     flatten) falls back to `render.compile_render` (reused False), so this is never worse
@@ -121,7 +123,9 @@ def compile_render_cached(scene, camera, settings, folder=None):
 
     render_module = importlib.import_module("jaxrt.render")  # the module, not jaxrt.render()
     folder = Path(folder) if folder is not None else default_path()
-    path = folder / PROGRAMS / f"{program_key(scene, camera, settings)}.bin"
+    rows = render_module.block_rows(camera, settings)
+    blocks = rows != camera.height
+    path = folder / PROGRAMS / f"{program_key(scene, camera, settings, rows)}.bin"
     dtype = render_module._dtype(settings)
     args = render_module._cast((scene, camera), dtype)
     leaves, treedef = jax.tree_util.tree_flatten(args)
@@ -132,6 +136,8 @@ def compile_render_cached(scene, camera, settings, folder=None):
         return render_module.Image(**dict(zip(names, outputs)))
 
     specs = [jax.ShapeDtypeStruct(leaves[i].shape, leaves[i].dtype) for i in arrays]
+    if blocks:  # the block's first row, last
+        specs.append(jax.ShapeDtypeStruct((), jax.numpy.int32))
     mesh, replicated = None, {}  # a program sharded over `settings.devices` names its mesh
     if settings.devices != 1:
         from .sharding import local_devices, pixel_mesh
@@ -151,7 +157,11 @@ def compile_render_cached(scene, camera, settings, folder=None):
 
         def run(scene, camera):
             flat = jax.tree_util.tree_leaves(render_module._cast((scene, camera), dtype))
-            return rebuild(call(*[jax.numpy.asarray(flat[i], leaves[i].dtype) for i in arrays]))
+            flat = [jax.numpy.asarray(flat[i], leaves[i].dtype) for i in arrays]
+            if not blocks:
+                return rebuild(call(*flat))
+            return render_module.in_blocks(lambda row0: rebuild(call(*flat, row0)), camera.height,
+                                           rows, render_module.threads(settings))
 
         return run
 
@@ -167,7 +177,8 @@ def compile_render_cached(scene, camera, settings, folder=None):
             for i, x in zip(arrays, array_leaves):
                 full[i] = x
             scene_, camera_ = jax.tree_util.tree_unflatten(treedef, full)
-            image = render_module._render(scene_, camera_, settings)
+            block = (rows, array_leaves[-1]) if blocks else ()
+            image = render_module._render(scene_, camera_, settings, *block)
             return tuple(getattr(image, k) for k in names)
 
         exported = jax.export.export(jax.jit(flat_render, **replicated))(*specs)

@@ -317,6 +317,12 @@ class RenderSettings:
                        1: no sharding, default; 0: all local devices).
       split            the image axis cut into one block per device: "columns"
                        (default) or "rows".
+      threads          CPU threads of a render called outside a trace (0: one per
+                       core, default; 1: one call): XLA:CPU runs a render program on
+                       one core, so blocks of rows are rendered at once, each a call
+                       of one compiled program (`jaxrt.render.block_rows`); with
+                       devices = 1 only, on a CPU. Gradients, and renders inside a
+                       jit, are one program on one core (shard them with devices).
       kernel           `KernelOptions`: how the fused lane backends build their
                        kernels (unroll, Pallas warps and fast math, "auto"'s size
                        limits, ...).
@@ -379,6 +385,7 @@ class RenderSettings:
     batch_size: int | str | None = "auto"
     backend: str = "auto"
     devices: int = 1
+    threads: int = 0
     silhouette: bool = False
     silhouette_width: float = 1.0
     silhouette_gradient: str = "ramp"
@@ -456,6 +463,7 @@ class RenderSettings:
         need(isinstance(self.silhouette, bool), "silhouette", "true or false")
         need(self.backend in _BACKENDS, "backend", f"one of {_BACKENDS}")
         need(_is_int(self.devices) and self.devices >= 0, "devices", "an integer ≥ 0 (0: all)")
+        need(_is_int(self.threads) and self.threads >= 0, "threads", "an integer ≥ 0 (0: one per core)")
         need(
             _is_num(self.silhouette_width) and 0 < self.silhouette_width <= 16,
             "silhouette_width",

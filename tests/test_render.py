@@ -11,6 +11,7 @@ import pytest
 
 import jaxrt as jr
 from jaxrt import sdf
+from jaxrt.render import block_rows, block_starts, compile_render
 
 from helpers import cluttered_scene, inside_sphere_scene
 
@@ -162,6 +163,48 @@ def test_changing_parameter_values_never_recompiles():
     assert TRACES[0] > compiled
 
 
+
+@pytest.mark.parametrize("backend", ["jax", "fused"])
+def test_blocks_of_rows_in_threads_are_the_one_call_image_and_compile_once(backend):
+    """A render outside a trace on a CPU runs blocks of rows in threads (`block_rows`):
+    the same pixels as one call (each ray's program is the same), the last block
+    overlapping the one before (13 rows in blocks of 5: starts 0, 5, 8), one program for
+    every block and every parameter value."""
+    camera = jr.PerspectiveCamera((0.0, 0.5, -5.0), (0.0, 0.0, 0.0), fov=40.0, width=9, height=13)
+    settings = jr.RenderSettings(backend=backend, batch_size=16, shadows="soft", threads=3)
+    assert block_rows(camera, settings) == 5
+    assert block_starts(13, 5) == [0, 5, 8]
+    one = jr.render(_counted_scene(), camera, settings.replace(threads=1))
+    before = TRACES[0]
+    blocks = jr.render(_counted_scene(), camera, settings)
+    traced = TRACES[0]
+    assert traced > before  # the block program is a program of its own
+    for name in jr.Image.__dataclass_fields__:  # two programs: equal to float32 rounding
+        np.testing.assert_allclose(np.asarray(getattr(blocks, name)), np.asarray(getattr(one, name)),
+                                   rtol=1e-5, atol=1e-6, err_msg=name)
+    moved = jr.render(_counted_scene(radius=0.8), camera, settings)
+    assert TRACES[0] == traced, "a block of other rows or other values retraced the render"
+    np.testing.assert_allclose(np.asarray(moved.rgb),
+                               np.asarray(jr.render(_counted_scene(radius=0.8), camera,
+                                                    settings.replace(threads=1)).rgb),
+                               rtol=1e-5, atol=1e-6)
+    # compiled ahead of time (`compile_render`, the CLI's path without its cache): the same
+    compiled = compile_render(_counted_scene(), camera, settings)
+    np.testing.assert_array_equal(np.asarray(compiled(_counted_scene(), camera).rgb),
+                                  np.asarray(blocks.rgb))
+
+
+def test_one_call_where_blocks_do_not_apply(monkeypatch):
+    camera = jr.PerspectiveCamera((0.0, 0.5, -5.0), (0.0, 0.0, 0.0), fov=40.0, width=64, height=64)
+    settings = jr.RenderSettings(batch_size=1024, threads=4)
+    assert block_rows(camera, settings) == 16
+    assert block_rows(camera, settings.replace(batch_size=2048)) == 32  # 2 tiles
+    for other in (dict(threads=1), dict(devices=2), dict(batch_size=None),
+                  dict(silhouette=True, silhouette_gradient="outline")):
+        assert block_rows(camera, settings.replace(**other)) == 64, other
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert block_rows(camera, settings) == 64
+
 # -- validation ----------------------------------------------------------------------
 
 BAD_SETTINGS = [
@@ -172,7 +215,7 @@ BAD_SETTINGS = [
     ("penumbra", -8.0), ("shadow_max_distance", 0.0), ("max_depth", -1), ("max_depth", 17),
     ("ray_offset", 0.0), ("spawn_steps", -1), ("spawn_steps", 1.5), ("spp", 0), ("seed", 0.5), ("wavelengths", -1), ("dtype", "float16"),
     ("batch_size", 0), ("batch_size", "whole"), ("silhouette", 1), ("aovs", ("rgb",)), ("aovs", ("depth", "depth")),
-    ("aovs", "depth"),
+    ("aovs", "depth"), ("threads", -1), ("threads", 2.0),
 ]
 
 
