@@ -28,6 +28,11 @@ stderr says when compiling starts and when it ends.
   renders 2.07× faster (docs/performance.md, "Session 24"). Not the default: the
   showcase at 480×270 renders in 1.2 s against 1.7 s on one device, but its sharded
   program compiles for 31–33 s against 25–28 s.
+- One device renders with one thread per core instead (`--set threads=N`, default 0:
+  one per core; `render.block_rows`): each thread calls the program of a block of rows,
+  compiled once, as fast as the whole image's. The showcase at 480×270 on 2 cores,
+  cache warm: render 2.4 s against 4.6–4.8 s with `threads=1`, wall 8.2–8.8 s against
+  10.4 s (session 41's machine, slower than session 30's above).
 - The backend is --backend (or --set backend=...), else the file's `settings.backend`,
   else "auto" (the fused lane kernels: on a 2-core CPU the showcase compiles 2.3× and
   renders 5.9× faster than with "jax"; the same image).
