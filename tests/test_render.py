@@ -199,8 +199,8 @@ def test_one_call_where_blocks_do_not_apply(monkeypatch):
     settings = jr.RenderSettings(batch_size=1024, threads=4)
     assert block_rows(camera, settings) == 16
     assert block_rows(camera, settings.replace(batch_size=2048)) == 32  # 2 tiles
-    for other in (dict(threads=1), dict(devices=2), dict(batch_size=None),
-                  dict(silhouette=True, silhouette_gradient="outline")):
+    for other in ({"threads": 1}, {"devices": 2}, {"batch_size": None},
+                  {"silhouette": True, "silhouette_gradient": "outline"}):
         assert block_rows(camera, settings.replace(**other)) == 64, other
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert block_rows(camera, settings) == 64
