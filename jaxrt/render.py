@@ -78,16 +78,30 @@ def block_rows(camera, settings):
     blocks one after the other 5.2 s, eight 7.6 s; two blocks in two threads 2.0–2.4 s
     against 4.2–4.3 s for one call). The image's height (one call) on a GPU, with
     `devices` other than 1 (the image is sharded over devices instead), with the
-    outline term of silhouettes (it splats onto neighbouring pixels), and with
-    `threads = 1`."""
+    outline term of silhouettes (it splats onto neighbouring pixels), inside one of
+    JAX's configuration contexts (`_jax_contexts`), and with `threads = 1`."""
     h, w, spp = camera.height, camera.width, settings.spp
     n = threads(settings)
-    if n == 1 or settings.devices != 1 or _outline_keys(settings) or jax.default_backend() != "cpu":
+    if (n == 1 or settings.devices != 1 or _outline_keys(settings)
+            or jax.default_backend() != "cpu" or _jax_contexts()):
         return h
     rays = h * w * spp
     tiles = -(-rays // settings.rays_per_tile(rays, lanes=resolve_backend(settings.backend) != "jax"))
     blocks = min(n, tiles, h)
     return -(-h // blocks)
+
+
+def _jax_contexts():
+    """Whether this thread is inside one of JAX's configuration contexts (`with
+    jax.debug_nans(True):`, `jax.default_matmul_precision(...)`, ...). They hold in the
+    thread that entered them only, so a render there is one call, in this thread."""
+    try:
+        from jax._src import config
+
+        unset = config.config_ext.unset
+        return any(state.get_local() is not unset for state in config.config_states.values())
+    except (ImportError, AttributeError):  # another JAX: contexts cannot be told apart
+        return False
 
 
 def block_starts(height, rows):

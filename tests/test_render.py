@@ -202,6 +202,8 @@ def test_one_call_where_blocks_do_not_apply(monkeypatch):
     for other in ({"threads": 1}, {"devices": 2}, {"batch_size": None},
                   {"silhouette": True, "silhouette_gradient": "outline"}):
         assert block_rows(camera, settings.replace(**other)) == 64, other
+    with jax.debug_nans(True):  # a context of this thread's, which threads would not see
+        assert block_rows(camera, settings) == 64
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert block_rows(camera, settings) == 64
 
