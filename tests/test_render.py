@@ -164,14 +164,15 @@ def test_changing_parameter_values_never_recompiles():
 
 
 
-@pytest.mark.parametrize("backend", ["jax", "fused"])
-def test_blocks_of_rows_in_threads_are_the_one_call_image_and_compile_once(backend):
+@pytest.mark.parametrize("backend,spp", [("jax", 1), ("fused", 2)])
+def test_blocks_of_rows_in_threads_are_the_one_call_image_and_compile_once(backend, spp):
     """A render outside a trace on a CPU runs blocks of rows in threads (`block_rows`):
     the same pixels as one call (each ray's program is the same), the last block
     overlapping the one before (13 rows in blocks of 5: starts 0, 5, 8), one program for
     every block and every parameter value."""
     camera = jr.PerspectiveCamera((0.0, 0.5, -5.0), (0.0, 0.0, 0.0), fov=40.0, width=9, height=13)
-    settings = jr.RenderSettings(backend=backend, batch_size=16, shadows="soft", threads=3)
+    settings = jr.RenderSettings(backend=backend, batch_size=16 * spp, spp=spp, shadows="soft",
+                                 threads=3)
     assert block_rows(camera, settings) == 5
     assert block_starts(13, 5) == [0, 5, 8]
     one = jr.render(_counted_scene(), camera, settings.replace(threads=1))
