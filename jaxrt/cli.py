@@ -257,9 +257,7 @@ def _host_devices(devices):
 
     wanted = isinstance(devices, int) and not isinstance(devices, bool)
     if wanted and (devices == 0 or devices > 1):
-        cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                 else os.cpu_count() or 1)
-        xla.add_host_devices(devices if devices > 1 else cores)
+        xla.add_host_devices(devices if devices > 1 else xla.cores())
 
 
 def format_rate(x):

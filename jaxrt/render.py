@@ -1,7 +1,6 @@
 """render(): the one place that maps the per-ray kernels over the pixels of an image."""
 
 import functools
-import os
 
 import equinox as eqx
 import jax
@@ -62,9 +61,7 @@ def render(scene, camera, settings=None):
 def threads(settings):
     """CPU threads of a render called outside a trace: `settings.threads`, 0 for one per
     core that this process may run on."""
-    if settings.threads:
-        return settings.threads
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return settings.threads or xla.cores()
 
 
 def block_rows(camera, settings):

@@ -90,6 +90,11 @@ def add_process_flags(environ=None):
     return list(missing)
 
 
+def cores():
+    """The CPU cores this process may run on (its affinity, else the machine's)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def add_host_devices(count, environ=None):
     """Ask XLA for `count` CPU devices (`--xla_force_host_platform_device_count`), so that
     `RenderSettings(devices=count)` can shard a render over as many CPU cores
